@@ -1,0 +1,65 @@
+"""Argument checks shared by the public functions.
+
+Every failure is a ``ValueError`` whose message starts with the argument's name and
+says what was expected, e.g. ``"V: expected shape (N, 2) with N >= 4, got (3, 2)"``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def float_array(x, name: str, shape: tuple, *, finite: bool = True) -> np.ndarray:
+    """``x`` as a float64 array of ``shape``; ``None`` in ``shape`` matches any length.
+
+    Parameters
+    ----------
+    x : array_like
+    name : str
+        The argument's name, used in the error message.
+    shape : tuple of int or None
+        Expected shape, e.g. ``(None, 3)``.
+    finite : bool
+        Refuse NaN and inf.
+    """
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: expected a numeric array of shape {_fmt(shape)}") from exc
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+        raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {tuple(a.shape)}")
+    if finite and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    return a
+
+
+def positive(x, name: str, shape: tuple = ()) -> np.ndarray:
+    """``x`` as a float64 array of ``shape`` whose entries are all > 0."""
+    a = float_array(x, name, shape)
+    if not np.all(a > 0):
+        raise ValueError(f"{name}: expected values > 0, got {a.tolist()}")
+    return a
+
+
+def intrinsics(K, name: str = "K") -> np.ndarray:
+    """A pinhole intrinsic matrix (3, 3) with positive focal lengths and last row [0, 0, 1]."""
+    K = float_array(K, name, (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise ValueError(
+            f"{name}: expected an upper-triangular pinhole matrix with fx, fy > 0 and "
+            f"last row [0, 0, 1], got {K.tolist()}"
+        )
+    return K
+
+
+def rotation(R, name: str = "R") -> np.ndarray:
+    """A rotation matrix (3, 3): orthonormal with determinant +1 (to 1e-6)."""
+    R = float_array(R, name, (3, 3))
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name}: expected a rotation matrix (orthonormal, det +1)")
+    return R
+
+
+def _fmt(shape: tuple) -> str:
+    inner = ", ".join("N" if s is None else str(s) for s in shape)
+    return f"({inner},)" if len(shape) == 1 else f"({inner})"
