@@ -42,12 +42,16 @@ def positive(x, name: str, shape: tuple = ()) -> np.ndarray:
 
 
 def intrinsics(K, name: str = "K") -> np.ndarray:
-    """A pinhole intrinsic matrix (3, 3) with positive focal lengths and last row [0, 0, 1]."""
+    """OpenCV pinhole intrinsics (3, 3): ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, fx, fy > 0.
+
+    OpenCV's projection and PnP have no skew term, so a non-zero skew is refused.
+    """
     K = float_array(K, name, (3, 3))
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+    pattern = np.array([[K[0, 0], 0, K[0, 2]], [0, K[1, 1], K[1, 2]], [0, 0, 1]])
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.array_equal(K, pattern):
         raise ValueError(
-            f"{name}: expected an upper-triangular pinhole matrix with fx, fy > 0 and "
-            f"last row [0, 0, 1], got {K.tolist()}"
+            f"{name}: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+            f"got {K.tolist()}"
         )
     return K
 

@@ -125,8 +125,8 @@ def solve_pnp_batch(P, V, K, init, *, max_iter: int = 50, tol_px: float = 1e-7,
     if P.shape != (N, 3):
         raise ValueError(f"P: expected shape ({N}, 3) to match V, got {tuple(P.shape)}")
     K = _tensor(K, "K", (2, 3)).expand(B, 3, 3)
-    if not (K[:, 0, 0] > 0).all() or not (K[:, 1, 1] > 0).all():
-        raise ValueError("K: expected positive focal lengths")
+    for k in K.reshape(-1, 9).unique(dim=0):
+        _checks.intrinsics(k.reshape(3, 3).numpy())
     R = _tensor(init[0], "init[0]", (2, 3)).expand(B, 3, 3)
     t = _tensor(init[1], "init[1]", (1, 2)).expand(B, 3)
     step = _compiled_lm_step() if compile else _lm_step
@@ -135,7 +135,7 @@ def solve_pnp_batch(P, V, K, init, *, max_iter: int = 50, tol_px: float = 1e-7,
     for lo in range(0, B, chunk):
         sl = slice(lo, min(lo + chunk, B))
         # Structure of arrays: the batch is the last (contiguous) dimension.
-        intr = torch.stack([K[sl, 0, 0], K[sl, 0, 1], K[sl, 0, 2], K[sl, 1, 1], K[sl, 1, 2]])
+        intr = torch.stack([K[sl, 0, 0], K[sl, 0, 2], K[sl, 1, 1], K[sl, 1, 2]])
         Vu, Vv = V[sl, :, 0].T.contiguous(), V[sl, :, 1].T.contiguous()
         Rc, tc = R[sl].permute(1, 2, 0).contiguous(), t[sl].T.contiguous()
         H, g, cost = _normal_equations(P, intr, Rc, tc, Vu, Vv)
@@ -155,22 +155,22 @@ def solve_pnp_batch(P, V, K, init, *, max_iter: int = 50, tol_px: float = 1e-7,
 def _normal_equations(P, intr, R, t, Vu, Vv):
     """Gauss–Newton terms of the reprojection cost, batch last.
 
-    ``P (N, 3)``, ``intr (5, B)`` = [fx, skew, cx, fy, cy], ``R (3, 3, B)``, ``t (3, B)``,
+    ``P (N, 3)``, ``intr (4, B)`` = [fx, cx, fy, cy], ``R (3, 3, B)``, ``t (3, B)``,
     ``Vu, Vv (N, B)``. Returns the 21 upper-triangular entries of ``JᵀJ`` ``(21, B)``,
     ``Jᵀr`` ``(6, B)`` and the cost ``Σ r²`` ``(B,)``; J is w.r.t. ``[ω, t]`` with the
     left rotation increment ``R ← exp([ω]×) R``.
     """
-    fx, sk, cx, fy, cy = intr
+    fx, cx, fy, cy = intr
     w = torch.einsum("nj,ijb->inb", P, R)  # R p, (3, N, B)
     wx, wy, wz = w[0], w[1], w[2]
     iz = 1.0 / (wz + t[2])
     x, y = (wx + t[0]) * iz, (wy + t[1]) * iz
-    ru = fx * x + sk * y + cx - Vu
+    ru = fx * x + cx - Vu
     rv = fy * y + cy - Vv
     # d(x, y)/d[ω, t] for the normalised image point (x, y) = (X/Z, Y/Z).
     Jx = [-x * wy * iz, (wz + x * wx) * iz, -wy * iz, iz, torch.zeros_like(iz), -x * iz]
     Jy = [(-wz - y * wy) * iz, y * wx * iz, wx * iz, torch.zeros_like(iz), iz, -y * iz]
-    Ju = [fx * a + sk * b for a, b in zip(Jx, Jy)]
+    Ju = [fx * a for a in Jx]
     Jv = [fy * b for b in Jy]
     H = [(Ju[i] * Ju[j] + Jv[i] * Jv[j]).sum(0) for i in range(6) for j in range(i, 6)]
     g = [(Ju[i] * ru + Jv[i] * rv).sum(0) for i in range(6)]
