@@ -80,7 +80,7 @@ def solve_pnp(P, V, K, init=None) -> tuple[np.ndarray, np.ndarray]:
     return cv2.Rodrigues(rvec)[0], tvec.reshape(3)
 
 
-def solve_pnp_batch(P, V, K, init, *, max_iter: int = 50, tol_px: float = 1e-7,
+def solve_pnp_batch(P, V, K, init, *, max_iter: int = 100, tol_px: float = 1e-7,
                     chunk: int = 4096, compile: bool = False):
     """Refine many PnP problems at once with Levenberg–Marquardt (torch, float64).
 
@@ -141,11 +141,19 @@ def solve_pnp_batch(P, V, K, init, *, max_iter: int = 50, tol_px: float = 1e-7,
         H, g, cost = _normal_equations(P, intr, Rc, tc, Vu, Vv)
         mu = torch.full_like(cost, 1e-3)
         active = torch.ones_like(cost, dtype=torch.bool)
+        work = torch.arange(cost.numel())  # problems still iterating (chunk indices)
+        state = (intr, Vu, Vv, Rc, tc, H, g, cost, mu, active)
         for _ in range(max_iter):
-            Rc, tc, H, g, cost, mu, active = step(P, intr, Rc, tc, Vu, Vv, H, g, cost, mu,
-                                                  active, N * tol_px**2)
-            if not bool(active.any()):
+            state = state[:3] + step(P, *state, N * tol_px**2)
+            n_active = int(state[-1].sum())
+            if n_active == 0:
                 break
+            if n_active <= work.numel() // 2:  # keep iterating the stragglers only
+                Rc[..., work], tc[:, work] = state[3], state[4]
+                keep = state[-1].nonzero().squeeze(1)
+                work = work[keep]
+                state = tuple(x[..., keep] for x in state)
+        Rc[..., work], tc[:, work] = state[3], state[4]
         R_out[sl], t_out[sl] = Rc.permute(2, 0, 1), tc.T
     if as_numpy:
         return R_out.numpy(), t_out.numpy()
@@ -202,8 +210,9 @@ def _damped_step(H, g, mu):
     return torch.stack(x)
 
 
-def _lm_step(P, intr, R, t, Vu, Vv, H, g, cost, mu, active, step_tol2):
-    """One LM iteration for every problem of a chunk; returns the updated state."""
+def _lm_step(P, intr, Vu, Vv, R, t, H, g, cost, mu, active, step_tol2):
+    """One LM iteration for every problem of a working set; returns ``(R, t, H, g, cost,
+    mu, active)`` updated (batch last)."""
     step = _damped_step(H, g, mu)
     dR = axis_angle_to_rotation_matrix(step[:3].T).permute(1, 2, 0)  # (3, 3, B)
     R_new = (dR[:, :, None, :] * R[None, :, :, :]).sum(1)  # dR @ R per problem
@@ -228,7 +237,7 @@ def _lm_step(P, intr, R, t, Vu, Vv, H, g, cost, mu, active, step_tol2):
 
 @functools.cache
 def _compiled_lm_step():
-    return torch.compile(_lm_step, dynamic=False)
+    return torch.compile(_lm_step, dynamic=True)
 
 
 def _tensor(x, name: str, ndim) -> torch.Tensor:

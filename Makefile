@@ -1,0 +1,50 @@
+# kpstudy: `make reproduce` and `make test` set everything up from a clean clone.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PROFILE ?= quick
+# System libraries for headless rendering (EGL and OSMesa back ends of the renderer).
+SYSTEM_PACKAGES := libegl1 libgl1 libgles2 libosmesa6 libgl1-mesa-dri
+STAMP := $(VENV)/.installed
+
+.PHONY: setup system venv test test-fast lint reproduce bench clean
+
+setup: system $(STAMP)
+
+system:
+	@missing=$$(for p in $(SYSTEM_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+		echo "installing system packages: $$missing"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+
+# Reinstalls only when environment.txt or pyproject.toml change (a second run installs nothing).
+$(STAMP): environment.txt pyproject.toml | $(VENV)/bin/python
+	$(PY) -m pip install -q --disable-pip-version-check -r environment.txt
+	$(PY) -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	touch $@
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks
+
+# The main job: everything that exists so far, at the chosen profile.
+reproduce: setup
+	$(PY) -m kpstudy reproduce --profile $(PROFILE)
+
+bench: setup
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis

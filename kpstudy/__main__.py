@@ -1,0 +1,5 @@
+import sys
+
+from kpstudy.cli import main
+
+sys.exit(main())
