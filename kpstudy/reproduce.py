@@ -62,8 +62,9 @@ def reproduce(profile: str, out_root="results", *, images: int | None = None,
         raise ValueError(f"profile: expected one of {sorted(PROFILES)}, got {profile!r}")
     prof = PROFILES[profile]
     if images is not None or samples is not None:
-        prof = Profile(**{**asdict(prof), "images": images or prof.images,
-                          "samples": samples or prof.samples})
+        prof = Profile(**{**asdict(prof),
+                          "images": prof.images if images is None else images,
+                          "samples": prof.samples if samples is None else samples})
     for name, value in (("images", prof.images), ("samples", prof.samples)):
         if value < 1:
             raise ValueError(f"{name}: expected a positive integer, got {value}")
