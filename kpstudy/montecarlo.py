@@ -76,10 +76,10 @@ def probabilistic_soundness(P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: int, 
         idx = np.arange(lo, min(lo + step, I))
         signs = np.stack([_rng(seed, i).choice([-1.0, 1.0], size=(n_samples, N, 2)) for i in idx])
         V_hat = V[idx, None] + signs * dV[idx, None]  # (c, S, N, 2)
-        rep = lambda a: np.repeat(a[idx], n_samples, axis=0)  # noqa: E731
-        R_hat, t_hat = solve_pnp_batch(P, torch.from_numpy(V_hat.reshape(-1, N, 2)), rep(K),
-                                       (rep(R), rep(t)), compile=compile)
-        inside = _inside(R_hat, t_hat, torch.from_numpy(rep(R)), torch.from_numpy(rep(t)), eps)
+        K_c, R_c, t_c = (np.repeat(a[idx], n_samples, axis=0) for a in (K, R, t))
+        R_hat, t_hat = solve_pnp_batch(P, torch.from_numpy(V_hat.reshape(-1, N, 2)), K_c,
+                                       (R_c, t_c), compile=compile)
+        inside = _inside(R_hat, t_hat, torch.from_numpy(R_c), torch.from_numpy(t_c), eps)
         out[idx] = inside.reshape(len(idx), n_samples).double().mean(1).numpy()
     return out
 

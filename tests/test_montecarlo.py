@@ -62,13 +62,18 @@ def test_soundness_non_decreasing_in_kappa(P, K, study):
 
 
 def test_soundness_equals_opencv_reference(P, K, study):
-    """Same vertex draws, each re-solved with OpenCV: identical inside/outside decisions."""
+    """Same vertex draws, each re-solved with OpenCV: the same inside/outside decisions.
+
+    (At large α the vertices move keypoints by up to ~100 px, the reprojection cost is
+    flat along the bas-relief direction and both LM solvers stop at slightly different
+    points; α = 0.5 keeps the problems well conditioned.)
+    """
     V, R, t, M = study
-    dv = allocate(M, 1.5)
+    dv = allocate(M, 0.5)
     S = 60
-    ours = probabilistic_soundness(P, V[:2], K, R[:2], t[:2], dv[:2], 1.5 * EPS_R, 1.5 * EPS_T,
+    ours = probabilistic_soundness(P, V[:2], K, R[:2], t[:2], dv[:2], 0.5 * EPS_R, 0.5 * EPS_T,
                                    n_samples=S, seed=7, scale=HEATMAP_SCALE)
-    eps = 1.5 * np.r_[EPS_R, EPS_T]
+    eps = 0.5 * np.r_[EPS_R, EPS_T]
     for i in range(2):
         signs = _rng(7, i).choice([-1.0, 1.0], size=(S, 23, 2))
         inside = []
@@ -78,7 +83,7 @@ def test_soundness_equals_opencv_reference(P, K, study):
             d = np.r_[wrap_degrees(euler_from_matrix(R_hat) - euler_from_matrix(R[i])),
                       np.abs(t_hat - t[i])]
             inside.append(np.all(d <= eps))
-        assert ours[i] == pytest.approx(np.mean(inside), abs=1.0 / S + 1e-12)
+        assert ours[i] == pytest.approx(np.mean(inside), abs=1e-12)
 
 
 def test_completeness_matches_direct_projection(P, K, study):
