@@ -50,7 +50,7 @@ class Profile:
 
 
 PROFILES = {
-    "quick": Profile("quick", images=200, samples=500),
+    "quick": Profile("quick", images=100, samples=1000),
     "paper": Profile("paper", images=3000, samples=5000),
 }
 
