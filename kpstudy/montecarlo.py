@@ -172,7 +172,7 @@ def _rng(seed: int, image: int) -> np.random.Generator:
 def _per_image(K, I: int) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
     if K.shape == (3, 3):
-        K = np.broadcast_to(K, (I, 3, 3))
+        K = np.repeat(K[None], I, axis=0)
     K = _checks.float_array(K, "K", (I, 3, 3))
     for k in K:
         _checks.intrinsics(k)

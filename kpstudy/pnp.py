@@ -284,8 +284,10 @@ def _compiled_lm_step():
 
 def _tensor(x, name: str, ndim) -> torch.Tensor:
     ndims = (ndim,) if isinstance(ndim, int) else ndim
-    x = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
-    x = x.to(torch.float64)
+    if isinstance(x, torch.Tensor):
+        x = x.to(torch.float64)
+    else:
+        x = torch.from_numpy(np.array(x, dtype=np.float64))  # a writable copy
     if x.ndim not in ndims:
         raise ValueError(f"{name}: expected {' or '.join(map(str, ndims))} dimensions, "
                          f"got shape {tuple(x.shape)}")

@@ -65,7 +65,7 @@ def pose_sensitivity(P, V, K, R, t, scale=None) -> np.ndarray:
         sx, sy = _checks.positive(scale, "scale", (2,))
     xi = torch.from_numpy(np.concatenate([euler_from_matrix(R), t]))
     v = torch.from_numpy(V.reshape(-1))
-    Pt, Kt = torch.from_numpy(P), torch.from_numpy(K)
+    Pt, Kt = torch.tensor(P), torch.tensor(K)
 
     g = jacrev(reprojection_cost)(xi, v, Pt, Kt)
     H = hessian(reprojection_cost)(xi, v, Pt, Kt)
