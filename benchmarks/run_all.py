@@ -8,6 +8,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks import bench_allocation, bench_montecarlo, bench_pnp  # noqa: E402
 
 if __name__ == "__main__":
-    bench_pnp.main([])
+    bench_pnp.main(["--compile"])
     bench_allocation.main([])
-    bench_montecarlo.main([])
+    bench_montecarlo.main(["--compile"])
