@@ -30,8 +30,10 @@ def baseline(M, eps_r, eps_t, kappa=1.0, w1=1.0, w2=5.0, max_dv=64) -> float:
     delta = cp.Variable()
     dv = cp.sum(z, axis=1)
     gain = np.diff(np.log(2.0 * np.arange(max_dv + 1) + 1.0))
-    problem = cp.Problem(cp.Maximize(w1 * cp.sum(z @ gain) + w2 * delta),
-                         [A @ dv <= 1 - 1e-9, dv >= delta, delta >= 0])
+    problem = cp.Problem(
+        cp.Maximize(w1 * cp.sum(z @ gain) + w2 * delta),
+        [A @ dv <= 1 - 1e-9, dv >= delta, delta >= 0],
+    )
     problem.solve(solver=cp.HIGHS, mip_rel_gap=0.0)
     return float(problem.value)
 

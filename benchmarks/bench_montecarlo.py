@@ -42,13 +42,15 @@ def main(argv=None):
         return poses, M
 
     s_prep, (poses, M) = timed(prepare)
-    s_alloc, dv = timed(lambda: np.stack([allocate_tolerances(m, eps_r, eps_t, max_dv=64).dv
-                                          for m in M]))
+    s_alloc, dv = timed(
+        lambda: np.stack([allocate_tolerances(m, eps_r, eps_t, max_dv=64).dv for m in M])
+    )
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
     common = dict(n_samples=args.samples, seed=0, scale=HEATMAP_SCALE)
-    s_sound, sound = timed(probabilistic_soundness, P, V, K, R, t, dv, eps_r, eps_t,
-                           compile=args.compile, **common)
+    s_sound, sound = timed(
+        probabilistic_soundness, P, V, K, R, t, dv, eps_r, eps_t, compile=args.compile, **common
+    )
     s_comp, comp = timed(probabilistic_completeness, P, V, K, R, t, dv, eps_r, eps_t, **common)
 
     # Baseline: the same soundness PnP problems through a cv2 loop, on a subsample.
@@ -59,18 +61,28 @@ def main(argv=None):
     V_hat = V[img] + signs * dv[img] / np.asarray(HEATMAP_SCALE)
     s_cv, _ = timed(cv2_loop_guess, P, V_hat, K, R[img], t[img])
     total = args.images * args.samples
-    return emit("montecarlo_one_configuration", {
-        "images": args.images, "samples_per_image": args.samples, "pnp_solves": total,
-        "kappa": 1.0, "alpha": 1.0, "compile": args.compile,
-        "soundness": float(sound.mean()), "completeness": float(comp.mean()),
-        "seconds_pnp_and_sensitivity": s_prep,
-        "seconds_allocation": s_alloc, "allocation_seconds_per_image": s_alloc / args.images,
-        "seconds_soundness": s_sound, "seconds_completeness": s_comp,
-        "seconds_monte_carlo_total": s_sound + s_comp,
-        "ours_pnp_solves_per_s": total / s_sound,
-        "cv2_loop_pnp_solves_per_s": nb / s_cv,
-        "cv2_loop_soundness_seconds_estimated": total * s_cv / nb,
-    })
+    return emit(
+        "montecarlo_one_configuration",
+        {
+            "images": args.images,
+            "samples_per_image": args.samples,
+            "pnp_solves": total,
+            "kappa": 1.0,
+            "alpha": 1.0,
+            "compile": args.compile,
+            "soundness": float(sound.mean()),
+            "completeness": float(comp.mean()),
+            "seconds_pnp_and_sensitivity": s_prep,
+            "seconds_allocation": s_alloc,
+            "allocation_seconds_per_image": s_alloc / args.images,
+            "seconds_soundness": s_sound,
+            "seconds_completeness": s_comp,
+            "seconds_monte_carlo_total": s_sound + s_comp,
+            "ours_pnp_solves_per_s": total / s_sound,
+            "cv2_loop_pnp_solves_per_s": nb / s_cv,
+            "cv2_loop_soundness_seconds_estimated": total * s_cv / nb,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -20,8 +20,9 @@ def cv2_loop_guess(P, V, K, R, t):
     out = []
     for Vi, Ri, ti in zip(V, R, t):
         rvec = cv2.Rodrigues(Ri)[0]
-        _, rvec, tvec = cv2.solvePnP(P, Vi, K, None, rvec, ti.copy(), useExtrinsicGuess=True,
-                                     flags=cv2.SOLVEPNP_ITERATIVE)
+        _, rvec, tvec = cv2.solvePnP(
+            P, Vi, K, None, rvec, ti.copy(), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE
+        )
         out.append(tvec)
     return out
 

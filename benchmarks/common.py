@@ -39,8 +39,15 @@ def timed(fn, *args, repeat: int = 1, **kwargs):
 
 def emit(name: str, result: dict) -> dict:
     """Print one benchmark's JSON line (with the machine it ran on) and return it."""
-    result = {"benchmark": name, **result, "machine": {
-        "python": sys.version.split()[0], "torch": torch.__version__,
-        "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine()}}
+    result = {
+        "benchmark": name,
+        **result,
+        "machine": {
+            "python": sys.version.split()[0],
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+            "cpu": platform.processor() or platform.machine(),
+        },
+    }
     print(json.dumps(result), flush=True)
     return result

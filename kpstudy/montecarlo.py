@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import torch
+from tqdm.auto import tqdm
 
 from kpstudy import _checks
 from kpstudy.allocation import allocate_tolerances
@@ -34,9 +35,22 @@ EPS_R = np.array([10.0, 10.0, 10.0])
 EPS_T = np.array([4.0, 4.0, 20.0])
 
 
-def probabilistic_soundness(P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: int, seed: int,
-                            scale=None, chunk_images: int | None = None,
-                            compile: bool = False) -> np.ndarray:
+def probabilistic_soundness(
+    P,
+    V,
+    K,
+    R,
+    t,
+    dv,
+    eps_r,
+    eps_t,
+    *,
+    n_samples: int,
+    seed: int,
+    scale=None,
+    chunk_images: int | None = None,
+    compile: bool = False,
+) -> np.ndarray:
     """Fraction of random vertices of the allocated box whose PnP pose stays in Ξ.
 
     Parameters
@@ -77,15 +91,17 @@ def probabilistic_soundness(P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: int, 
         signs = np.stack([_rng(seed, i).choice([-1.0, 1.0], size=(n_samples, N, 2)) for i in idx])
         V_hat = V[idx, None] + signs * dV[idx, None]  # (c, S, N, 2)
         K_c, R_c, t_c = (np.repeat(a[idx], n_samples, axis=0) for a in (K, R, t))
-        R_hat, t_hat = solve_pnp_batch(P, torch.from_numpy(V_hat.reshape(-1, N, 2)), K_c,
-                                       (R_c, t_c), compile=compile)
+        R_hat, t_hat = solve_pnp_batch(
+            P, torch.from_numpy(V_hat.reshape(-1, N, 2)), K_c, (R_c, t_c), compile=compile
+        )
         inside = _inside(R_hat, t_hat, torch.from_numpy(R_c), torch.from_numpy(t_c), eps)
         out[idx] = inside.reshape(len(idx), n_samples).double().mean(1).numpy()
     return out
 
 
-def probabilistic_completeness(P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: int, seed: int,
-                               scale=None) -> np.ndarray:
+def probabilistic_completeness(
+    P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: int, seed: int, scale=None
+) -> np.ndarray:
     """Fraction of pose errors uniform in Ξ whose re-projected keypoints stay in the box.
 
     Parameters are those of :func:`probabilistic_soundness`.
@@ -110,9 +126,22 @@ def probabilistic_completeness(P, V, K, R, t, dv, eps_r, eps_t, *, n_samples: in
     return out
 
 
-def soundness_completeness_table(P, V, K, *, kappas, alphas, n_samples: int, seed: int,
-                                 scale=None, max_dv=None, w1: float = 1.0, w2: float = 5.0,
-                                 compile: bool = False) -> pd.DataFrame:
+def soundness_completeness_table(
+    P,
+    V,
+    K,
+    *,
+    kappas,
+    alphas,
+    n_samples: int,
+    seed: int,
+    scale=None,
+    max_dv=None,
+    w1: float = 1.0,
+    w2: float = 5.0,
+    compile: bool = False,
+    progress: bool = False,
+) -> pd.DataFrame:
     """The paper's T-prob grid: allocate per image, then both Monte Carlo fractions.
 
     Parameters
@@ -125,6 +154,8 @@ def soundness_completeness_table(P, V, K, *, kappas, alphas, n_samples: int, see
         Samples per image and configuration.
     scale, max_dv, w1, w2 :
         Heatmap resize factors, tolerance cap (heatmap size) and allocation weights.
+    compile, progress :
+        Fuse the batched PnP (:func:`kpstudy.pnp.solve_pnp_batch`); show a progress bar.
 
     Returns
     -------
@@ -142,18 +173,32 @@ def soundness_completeness_table(P, V, K, *, kappas, alphas, n_samples: int, see
     t = np.stack([p[1] for p in poses])
     M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=scale) for i in range(I)]
     rows = []
-    for kappa in kappas:
-        for alpha in alphas:
-            eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
-            dv = np.stack([allocate_tolerances(m, eps_r, eps_t, kappa=kappa, w1=w1, w2=w2,
-                                               max_dv=max_dv).dv for m in M])
-            args = (P, V, K, R, t, dv, eps_r, eps_t)
-            s = probabilistic_soundness(*args, n_samples=n_samples, seed=seed, scale=scale,
-                                        compile=compile)
-            c = probabilistic_completeness(*args, n_samples=n_samples, seed=seed, scale=scale)
-            rows.append(dict(kappa=kappa, alpha=alpha, soundness=s.mean(), completeness=c.mean(),
-                             soundness_min_image=s.min(), mean_dv=dv.mean(), images=I,
-                             samples=I * n_samples))
+    grid = [(kappa, alpha) for kappa in kappas for alpha in alphas]
+    for kappa, alpha in tqdm(grid, desc="T-prob (kappa, alpha)", disable=not progress):
+        eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+        dv = np.stack(
+            [
+                allocate_tolerances(m, eps_r, eps_t, kappa=kappa, w1=w1, w2=w2, max_dv=max_dv).dv
+                for m in M
+            ]
+        )
+        args = (P, V, K, R, t, dv, eps_r, eps_t)
+        s = probabilistic_soundness(
+            *args, n_samples=n_samples, seed=seed, scale=scale, compile=compile
+        )
+        c = probabilistic_completeness(*args, n_samples=n_samples, seed=seed, scale=scale)
+        rows.append(
+            dict(
+                kappa=kappa,
+                alpha=alpha,
+                soundness=s.mean(),
+                completeness=c.mean(),
+                soundness_min_image=s.min(),
+                mean_dv=dv.mean(),
+                images=I,
+                samples=I * n_samples,
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -190,8 +235,9 @@ def _check_study(P, V, K, R, t, dv, eps_r, eps_t, n_samples, scale):
     dv = _checks.float_array(dv, "dv", (I, N, 2))
     if np.any(dv < 0):
         raise ValueError("dv: expected non-negative tolerances")
-    eps = np.concatenate([_checks.positive(eps_r, "eps_r", (3,)),
-                          _checks.positive(eps_t, "eps_t", (3,))])
+    eps = np.concatenate(
+        [_checks.positive(eps_r, "eps_r", (3,)), _checks.positive(eps_t, "eps_t", (3,))]
+    )
     if int(n_samples) != n_samples or n_samples < 1:
         raise ValueError(f"n_samples: expected a positive integer, got {n_samples}")
     if scale is not None:

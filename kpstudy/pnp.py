@@ -84,8 +84,17 @@ def solve_pnp(P, V, K, init=None) -> tuple[np.ndarray, np.ndarray]:
     return cv2.Rodrigues(rvec)[0], tvec.reshape(3)
 
 
-def solve_pnp_batch(P, V, K, init, *, max_iter: int = 100, tol_px: float = 1e-7,
-                    chunk: int = 4096, compile: bool = False):
+def solve_pnp_batch(
+    P,
+    V,
+    K,
+    init,
+    *,
+    max_iter: int = 100,
+    tol_px: float = 1e-7,
+    chunk: int = 4096,
+    compile: bool = False,
+):
     """Refine many PnP problems at once with damped Newton (torch, float64).
 
     Parameters
@@ -233,11 +242,11 @@ def _cholesky_solve(A, g):
             L[i][j] = off / L[j][j]
     z = [None] * 6
     for i in range(6):
-        z[i] = (-g[i] - sum((L[i][k] * z[k] for k in range(i)), torch.zeros_like(g[0])))
+        z[i] = -g[i] - sum((L[i][k] * z[k] for k in range(i)), torch.zeros_like(g[0]))
         z[i] = z[i] / L[i][i]
     x = [None] * 6
     for i in reversed(range(6)):
-        x[i] = (z[i] - sum((L[k][i] * x[k] for k in range(i + 1, 6)), torch.zeros_like(g[0])))
+        x[i] = z[i] - sum((L[k][i] * x[k] for k in range(i + 1, 6)), torch.zeros_like(g[0]))
         x[i] = x[i] / L[i][i]
     return torch.stack(x), ok
 
@@ -273,8 +282,16 @@ def _lm_step(P, intr, Vu, Vv, R, t, H, S, g, cost, mu, active, step_tol2):
     mu = torch.where(better, mu / 10.0, mu * 10.0).clamp(1e-12, 1e12)
     active = active & ~(small | (mu >= 1e12))
     keep = lambda new, old: torch.where(better, new, old)  # noqa: E731
-    return (keep(R_new, R), keep(t_new, t), keep(H_new, H), keep(S_new, S), keep(g_new, g),
-            keep(cost_new, cost), mu, active)
+    return (
+        keep(R_new, R),
+        keep(t_new, t),
+        keep(H_new, H),
+        keep(S_new, S),
+        keep(g_new, g),
+        keep(cost_new, cost),
+        mu,
+        active,
+    )
 
 
 @functools.cache
@@ -289,8 +306,10 @@ def _tensor(x, name: str, ndim) -> torch.Tensor:
     else:
         x = torch.from_numpy(np.array(x, dtype=np.float64))  # a writable copy
     if x.ndim not in ndims:
-        raise ValueError(f"{name}: expected {' or '.join(map(str, ndims))} dimensions, "
-                         f"got shape {tuple(x.shape)}")
+        raise ValueError(
+            f"{name}: expected {' or '.join(map(str, ndims))} dimensions, "
+            f"got shape {tuple(x.shape)}"
+        )
     if not torch.isfinite(x).all():
         raise ValueError(f"{name}: expected finite values, got NaN or inf")
     return x

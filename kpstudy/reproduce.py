@@ -27,12 +27,18 @@ from kpstudy.montecarlo import soundness_completeness_table
 
 #: Paper Table 2 (soundness, completeness) by (κ, α); "<6.67e-9" is entered as 0.
 PAPER_T_PROB = {
-    (1.0, 0.5): (1.0, 1.93e-6), (1.0, 1.0): (0.998978, 3.07e-5),
-    (1.0, 1.5): (0.996596, 4.85e-5), (1.0, 2.0): (0.988339, 6.20e-5),
-    (1.5, 0.5): (1.0, 0.0), (1.5, 1.0): (0.999993, 1.00e-6),
-    (1.5, 1.5): (0.999887, 2.00e-6), (1.5, 2.0): (0.999890, 3.67e-6),
-    (2.0, 0.5): (1.0, 0.0), (2.0, 1.0): (1.0, 0.0),
-    (2.0, 1.5): (1.0, 3.33e-7), (2.0, 2.0): (0.999999, 6.67e-7),
+    (1.0, 0.5): (1.0, 1.93e-6),
+    (1.0, 1.0): (0.998978, 3.07e-5),
+    (1.0, 1.5): (0.996596, 4.85e-5),
+    (1.0, 2.0): (0.988339, 6.20e-5),
+    (1.5, 0.5): (1.0, 0.0),
+    (1.5, 1.0): (0.999993, 1.00e-6),
+    (1.5, 1.5): (0.999887, 2.00e-6),
+    (1.5, 2.0): (0.999890, 3.67e-6),
+    (2.0, 0.5): (1.0, 0.0),
+    (2.0, 1.0): (1.0, 0.0),
+    (2.0, 1.5): (1.0, 3.33e-7),
+    (2.0, 2.0): (0.999999, 6.67e-7),
 }
 
 
@@ -55,16 +61,21 @@ PROFILES = {
 }
 
 
-def reproduce(profile: str, out_root="results", *, images: int | None = None,
-              samples: int | None = None) -> Path:
+def reproduce(
+    profile: str, out_root="results", *, images: int | None = None, samples: int | None = None
+) -> Path:
     """Run every stage of ``profile`` and return its results folder."""
     if profile not in PROFILES:
         raise ValueError(f"profile: expected one of {sorted(PROFILES)}, got {profile!r}")
     prof = PROFILES[profile]
     if images is not None or samples is not None:
-        prof = Profile(**{**asdict(prof),
-                          "images": prof.images if images is None else images,
-                          "samples": prof.samples if samples is None else samples})
+        prof = Profile(
+            **{
+                **asdict(prof),
+                "images": prof.images if images is None else images,
+                "samples": prof.samples if samples is None else samples,
+            }
+        )
     for name, value in (("images", prof.images), ("samples", prof.samples)):
         if value < 1:
             raise ValueError(f"{name}: expected a positive integer, got {value}")
@@ -83,15 +94,30 @@ def t_prob(prof: Profile, tables: Path) -> pd.DataFrame:
     scale = (prof.heatmap_size / W, prof.heatmap_size / H)
     start = time.perf_counter()
     df = soundness_completeness_table(
-        P, V, K, kappas=prof.kappas, alphas=prof.alphas, n_samples=prof.samples,
-        seed=prof.seed, scale=scale, max_dv=prof.heatmap_size, compile=prof.images >= 1000,
+        P,
+        V,
+        K,
+        kappas=prof.kappas,
+        alphas=prof.alphas,
+        n_samples=prof.samples,
+        seed=prof.seed,
+        scale=scale,
+        max_dv=prof.heatmap_size,
+        compile=prof.images >= 1000,
+        progress=True,
     )
-    df["paper_soundness"] = [PAPER_T_PROB.get((k, a), (np.nan,))[0]
-                             for k, a in zip(df.kappa, df.alpha)]
-    df["paper_completeness"] = [PAPER_T_PROB.get((k, a), (np.nan, np.nan))[1]
-                                for k, a in zip(df.kappa, df.alpha)]
+    df["paper_soundness"] = [
+        PAPER_T_PROB.get((k, a), (np.nan,))[0] for k, a in zip(df.kappa, df.alpha)
+    ]
+    df["paper_completeness"] = [
+        PAPER_T_PROB.get((k, a), (np.nan, np.nan))[1] for k, a in zip(df.kappa, df.alpha)
+    ]
     write_table(df, tables / "t_prob")
-    meta = dict(asdict(prof), seconds=round(time.perf_counter() - start, 1),
-                keypoints="data_gen.keypoints.AIRLINER_KEYPOINTS", heatmap_scale=scale)
+    meta = dict(
+        asdict(prof),
+        seconds=round(time.perf_counter() - start, 1),
+        keypoints="data_gen.keypoints.AIRLINER_KEYPOINTS",
+        heatmap_scale=scale,
+    )
     write_text_atomic(tables / "t_prob.json", json.dumps(meta, indent=2) + "\n")
     return df

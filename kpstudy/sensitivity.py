@@ -74,8 +74,10 @@ def pose_sensitivity(P, V, K, R, t, scale=None) -> np.ndarray:
     d = torch.sqrt(torch.clamp(H.diagonal(), min=1e-300))
     Hn = H / d[:, None] / d[None, :]
     if not torch.isfinite(Hn).all() or torch.linalg.cond(Hn) > 1e12:
-        raise ValueError("P: keypoints give a singular Hessian of the reprojection error "
-                         "(degenerate configuration); expected a well-posed PnP problem")
+        raise ValueError(
+            "P: keypoints give a singular Hessian of the reprojection error "
+            "(degenerate configuration); expected a well-posed PnP problem"
+        )
     newton = torch.linalg.solve(H, g)
     motion = _keypoint_motion(Pt, Kt, xi, newton)
     if motion > OPTIMUM_TOL_PX:
@@ -92,6 +94,7 @@ def pose_sensitivity(P, V, K, R, t, scale=None) -> np.ndarray:
 
 def _keypoint_motion(P, K, xi, step) -> float:
     """Largest reprojection displacement, pixels, caused by moving ξ by ``−step``."""
+
     def uv(x):
         return project_batch(P, matrix_from_euler_torch(x[:3]), x[3:], K)
 

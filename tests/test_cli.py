@@ -9,8 +9,22 @@ from kpstudy.reproduce import PAPER_T_PROB
 
 
 def test_reproduce_writes_the_t_prob_table(tmp_path):
-    assert main(["reproduce", "--profile", "quick", "--out", str(tmp_path), "--images", "2",
-                 "--samples", "20"]) == 0
+    assert (
+        main(
+            [
+                "reproduce",
+                "--profile",
+                "quick",
+                "--out",
+                str(tmp_path),
+                "--images",
+                "2",
+                "--samples",
+                "20",
+            ]
+        )
+        == 0
+    )
     tables = tmp_path / "quick" / "tables"
     df = pd.read_csv(tables / "t_prob.csv")
     assert len(df) == 12 and set(zip(df.kappa, df.alpha)) == set(PAPER_T_PROB)
@@ -20,13 +34,19 @@ def test_reproduce_writes_the_t_prob_table(tmp_path):
     assert not list(tables.glob(".*.tmp"))  # no leftovers of the atomic writes
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--profile", "huge"], "profile: expected one of"),
-    (["--images", "0"], "images: expected a positive integer"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--profile", "huge"], "profile: expected one of"),
+        (["--images", "0"], "images: expected a positive integer"),
+    ],
+)
 def test_bad_arguments_exit_non_zero_and_write_nothing(tmp_path, args, message):
-    proc = subprocess.run([sys.executable, "-m", "kpstudy", "reproduce", "--out", str(tmp_path),
-                           *args], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "kpstudy", "reproduce", "--out", str(tmp_path), *args],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not any(tmp_path.iterdir())

@@ -21,8 +21,9 @@ def test_keypoints_are_23_named_points_of_an_airliner():
 def test_overhead_poses_look_down_and_keep_the_airplane_in_frame():
     K = intrinsics(640, 400, 70.0)
     R, t = overhead_poses(500, 0)
-    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+    )
     V = project_batch(airliner_keypoints(), R, t, K)
     assert np.all((V[..., 0] >= 0) & (V[..., 0] <= 639) & (V[..., 1] >= 0) & (V[..., 1] <= 399))
     # object z (up) points against the camera's viewing direction within the tilt bound

@@ -28,8 +28,9 @@ def test_project_batch_numpy_and_torch_agree(P):
     R = Rotation.random(5, random_state=1).as_matrix()
     t = np.tile([0.0, 0.0, 200.0], (5, 1))
     batch = project_batch(P, R, t, K)
-    torch_batch = project_batch(torch.from_numpy(P), torch.from_numpy(R), torch.from_numpy(t),
-                                torch.from_numpy(K)).numpy()
+    torch_batch = project_batch(
+        torch.from_numpy(P), torch.from_numpy(R), torch.from_numpy(t), torch.from_numpy(K)
+    ).numpy()
     for i in range(5):
         ref = cv2.projectPoints(P, cv2.Rodrigues(R[i])[0], t[i], K, None)[0].reshape(-1, 2)
         np.testing.assert_allclose(batch[i], ref, atol=1e-9)
@@ -41,8 +42,9 @@ def test_euler_round_trip_and_scipy_convention():
     R = matrix_from_euler(e)
     np.testing.assert_allclose(euler_from_matrix(R), e, atol=1e-10)
     # extrinsic xyz: R = Rz(yaw) Ry(pitch) Rx(roll)
-    Rz, Ry, Rx = (Rotation.from_euler(a, v, degrees=True).as_matrix()
-                  for a, v in zip("zyx", e[0][::-1]))
+    Rz, Ry, Rx = (
+        Rotation.from_euler(a, v, degrees=True).as_matrix() for a, v in zip("zyx", e[0][::-1])
+    )
     np.testing.assert_allclose(R[0], Rz @ Ry @ Rx, atol=1e-12)
 
 
@@ -51,13 +53,18 @@ def test_torch_euler_matches_scipy():
     e = e[np.abs(e[:, 1]) < 89.0]
     R = matrix_from_euler(e)
     np.testing.assert_allclose(matrix_from_euler_torch(torch.from_numpy(e)).numpy(), R, atol=1e-12)
-    np.testing.assert_allclose(euler_from_matrix_torch(torch.from_numpy(R)).numpy(),
-                               euler_from_matrix(R), atol=1e-9)
+    np.testing.assert_allclose(
+        euler_from_matrix_torch(torch.from_numpy(R)).numpy(), euler_from_matrix(R), atol=1e-9
+    )
 
 
 def test_pose_error_wraps_around():
-    dr, dt = pose_error(matrix_from_euler([179.0, 10.0, -170.0]), [1.0, 2.0, 3.0],
-                        matrix_from_euler([-179.0, 10.0, 175.0]), [1.5, 2.0, 1.0])
+    dr, dt = pose_error(
+        matrix_from_euler([179.0, 10.0, -170.0]),
+        [1.0, 2.0, 3.0],
+        matrix_from_euler([-179.0, 10.0, 175.0]),
+        [1.5, 2.0, 1.0],
+    )
     np.testing.assert_allclose(dr, [2.0, 0.0, 15.0], atol=1e-9)
     np.testing.assert_allclose(dt, [0.5, 0.0, 2.0])
     assert np.all((dr >= 0) & (dr <= 180))
@@ -67,8 +74,11 @@ def test_pose_error_is_zero_on_itself_and_symmetric():
     R = Rotation.random(1, random_state=3).as_matrix()[0]
     R2 = Rotation.random(1, random_state=4).as_matrix()[0]
     assert np.allclose(pose_error(R, np.zeros(3), R, np.zeros(3))[0], 0.0, atol=1e-9)
-    np.testing.assert_allclose(pose_error(R, np.zeros(3), R2, np.ones(3))[0],
-                               pose_error(R2, np.ones(3), R, np.zeros(3))[0], atol=1e-9)
+    np.testing.assert_allclose(
+        pose_error(R, np.zeros(3), R2, np.ones(3))[0],
+        pose_error(R2, np.ones(3), R, np.zeros(3))[0],
+        atol=1e-9,
+    )
 
 
 @pytest.mark.parametrize(
@@ -85,8 +95,12 @@ def test_pose_error_is_zero_on_itself_and_symmetric():
     ],
 )
 def test_project_bad_input(args, name):
-    base = dict(P=np.ones((4, 3)), R=np.eye(3), t=np.array([0.0, 0.0, 10.0]),
-                K=np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]))
+    base = dict(
+        P=np.ones((4, 3)),
+        R=np.eye(3),
+        t=np.array([0.0, 0.0, 10.0]),
+        K=np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]),
+    )
     base.update(args)
     with pytest.raises(ValueError, match=f"^{name}:"):
         project(**base)

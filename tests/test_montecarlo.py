@@ -28,8 +28,9 @@ def study(P, K):
 
 
 def allocate(M, alpha, kappa=1.0):
-    return np.stack([allocate_tolerances(m, alpha * EPS_R, alpha * EPS_T, kappa=kappa,
-                                         max_dv=64).dv for m in M])
+    return np.stack(
+        [allocate_tolerances(m, alpha * EPS_R, alpha * EPS_T, kappa=kappa, max_dv=64).dv for m in M]
+    )
 
 
 def test_soundness_tends_to_one_as_alpha_shrinks(P, K, study):
@@ -42,8 +43,19 @@ def test_soundness_tends_to_one_as_alpha_shrinks(P, K, study):
     fractions = []
     for alpha in (0.005, 0.1, 1.0):
         dv = allocate(M, alpha)
-        s = probabilistic_soundness(P, V, K, R, t, dv, alpha * EPS_R, alpha * EPS_T,
-                                    n_samples=300, seed=0, scale=HEATMAP_SCALE)
+        s = probabilistic_soundness(
+            P,
+            V,
+            K,
+            R,
+            t,
+            dv,
+            alpha * EPS_R,
+            alpha * EPS_T,
+            n_samples=300,
+            seed=0,
+            scale=HEATMAP_SCALE,
+        )
         fractions.append(s.mean())
         if alpha == 0.005:
             assert dv.max() == 0
@@ -54,9 +66,22 @@ def test_soundness_tends_to_one_as_alpha_shrinks(P, K, study):
 
 def test_soundness_non_decreasing_in_kappa(P, K, study):
     V, R, t, M = study
-    s = [probabilistic_soundness(P, V, K, R, t, allocate(M, 1.0, kappa), EPS_R, EPS_T,
-                                 n_samples=400, seed=1, scale=HEATMAP_SCALE).mean()
-         for kappa in (1.0, 1.5, 2.0, 4.0)]
+    s = [
+        probabilistic_soundness(
+            P,
+            V,
+            K,
+            R,
+            t,
+            allocate(M, 1.0, kappa),
+            EPS_R,
+            EPS_T,
+            n_samples=400,
+            seed=1,
+            scale=HEATMAP_SCALE,
+        ).mean()
+        for kappa in (1.0, 1.5, 2.0, 4.0)
+    ]
     assert all(b >= a - 0.01 for a, b in zip(s, s[1:])), s
     assert s[-1] > s[0]
 
@@ -71,17 +96,31 @@ def test_soundness_equals_opencv_reference(P, K, study):
     V, R, t, M = study
     dv = allocate(M, 0.5)
     S = 60
-    ours = probabilistic_soundness(P, V[:2], K, R[:2], t[:2], dv[:2], 0.5 * EPS_R, 0.5 * EPS_T,
-                                   n_samples=S, seed=7, scale=HEATMAP_SCALE)
+    ours = probabilistic_soundness(
+        P,
+        V[:2],
+        K,
+        R[:2],
+        t[:2],
+        dv[:2],
+        0.5 * EPS_R,
+        0.5 * EPS_T,
+        n_samples=S,
+        seed=7,
+        scale=HEATMAP_SCALE,
+    )
     eps = 0.5 * np.r_[EPS_R, EPS_T]
     for i in range(2):
         signs = _rng(7, i).choice([-1.0, 1.0], size=(S, 23, 2))
         inside = []
         for a in signs:
-            R_hat, t_hat = solve_pnp(P, V[i] + a * dv[i] / np.asarray(HEATMAP_SCALE), K,
-                                     init=(R[i], t[i]))
-            d = np.r_[wrap_degrees(euler_from_matrix(R_hat) - euler_from_matrix(R[i])),
-                      np.abs(t_hat - t[i])]
+            R_hat, t_hat = solve_pnp(
+                P, V[i] + a * dv[i] / np.asarray(HEATMAP_SCALE), K, init=(R[i], t[i])
+            )
+            d = np.r_[
+                wrap_degrees(euler_from_matrix(R_hat) - euler_from_matrix(R[i])),
+                np.abs(t_hat - t[i]),
+            ]
             inside.append(np.all(d <= eps))
         assert ours[i] == pytest.approx(np.mean(inside), abs=1e-12)
 
@@ -91,8 +130,9 @@ def test_completeness_matches_direct_projection(P, K, study):
     dv = allocate(M, 2.0)
     eps = 2.0 * np.r_[EPS_R, EPS_T]
     S = 200
-    ours = probabilistic_completeness(P, V[:2], K, R[:2], t[:2], dv[:2], eps[:3], eps[3:],
-                                      n_samples=S, seed=3)  # dv read as image pixels
+    ours = probabilistic_completeness(
+        P, V[:2], K, R[:2], t[:2], dv[:2], eps[:3], eps[3:], n_samples=S, seed=3
+    )  # dv read as image pixels
     for i in range(2):
         dxi = _rng(3, i).uniform(-1.0, 1.0, (S, 6)) * eps
         e0 = euler_from_matrix(R[i])
@@ -119,20 +159,32 @@ def test_completeness_extremes(P, K, study):
 def test_chunking_and_seed_determinism(P, K, study):
     V, R, t, M = study
     dv = allocate(M, 1.0)
-    a = probabilistic_soundness(P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=5,
-                                scale=HEATMAP_SCALE)
-    b = probabilistic_soundness(P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=5,
-                                scale=HEATMAP_SCALE, chunk_images=1)
+    a = probabilistic_soundness(
+        P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=5, scale=HEATMAP_SCALE
+    )
+    b = probabilistic_soundness(
+        P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=5, scale=HEATMAP_SCALE, chunk_images=1
+    )
     np.testing.assert_array_equal(a, b)
-    c = probabilistic_soundness(P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=6,
-                                scale=HEATMAP_SCALE)
+    c = probabilistic_soundness(
+        P, V, K, R, t, dv, EPS_R, EPS_T, n_samples=50, seed=6, scale=HEATMAP_SCALE
+    )
     assert a.shape == (6,) and np.all((0 <= c) & (c <= 1))
 
 
 def test_table_has_the_grid_and_trends(P, K):
     _, _, V = views(3, 41, K, P)
-    df = soundness_completeness_table(P, V, K, kappas=(1.0, 2.0), alphas=(0.5, 1.0),
-                                      n_samples=100, seed=0, scale=HEATMAP_SCALE, max_dv=64)
+    df = soundness_completeness_table(
+        P,
+        V,
+        K,
+        kappas=(1.0, 2.0),
+        alphas=(0.5, 1.0),
+        n_samples=100,
+        seed=0,
+        scale=HEATMAP_SCALE,
+        max_dv=64,
+    )
     assert list(df.columns[:4]) == ["kappa", "alpha", "soundness", "completeness"]
     assert len(df) == 4 and df.samples.iloc[0] == 300
     by = df.set_index(["kappa", "alpha"])
@@ -154,8 +206,18 @@ def test_table_has_the_grid_and_trends(P, K):
 )
 def test_bad_input(P, K, study, change, name):
     V, R, t, _ = study
-    kw = dict(P=P, V=V, K=K, R=R, t=t, dv=np.ones((6, 23, 2)), eps_r=EPS_R, eps_t=EPS_T,
-              n_samples=10, seed=0)
+    kw = dict(
+        P=P,
+        V=V,
+        K=K,
+        R=R,
+        t=t,
+        dv=np.ones((6, 23, 2)),
+        eps_r=EPS_R,
+        eps_t=EPS_T,
+        n_samples=10,
+        seed=0,
+    )
     kw.update(change)
     for fn in (probabilistic_soundness, probabilistic_completeness):
         with pytest.raises(ValueError, match=f"^{name}:"):

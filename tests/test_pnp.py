@@ -43,16 +43,22 @@ def test_batch_agrees_with_opencv_on_1000_problems(P, K):
         np.testing.assert_allclose(R_b[i], R_cv, atol=1e-6)
         np.testing.assert_allclose(t_b[i], t_cv, atol=1e-5)
         # our optimum is at least as good as OpenCV's
-        ours, theirs = (((project_batch(P, R_, t_, K) - V[i]) ** 2).sum()
-                        for R_, t_ in ((R_b[i], t_b[i]), (R_cv, t_cv)))
+        ours, theirs = (
+            ((project_batch(P, R_, t_, K) - V[i]) ** 2).sum()
+            for R_, t_ in ((R_b[i], t_b[i]), (R_cv, t_cv))
+        )
         assert ours <= theirs * (1 + 1e-12)
 
 
 def test_batch_tensor_in_tensor_out_and_broadcasting(P, K):
     R, t, V = views(8, 14, K, P, noise_px=1.0)
     R0, t0 = solve_pnp(P, V[0], K)
-    R_b, t_b = solve_pnp_batch(torch.from_numpy(P), torch.from_numpy(V), torch.from_numpy(K),
-                               (torch.from_numpy(R0), torch.from_numpy(t0)))
+    R_b, t_b = solve_pnp_batch(
+        torch.from_numpy(P),
+        torch.from_numpy(V),
+        torch.from_numpy(K),
+        (torch.from_numpy(R0), torch.from_numpy(t0)),
+    )
     assert isinstance(R_b, torch.Tensor) and R_b.shape == (8, 3, 3) and t_b.shape == (8, 3)
     R_np, t_np = solve_pnp_batch(P, V, np.broadcast_to(K, (8, 3, 3)), (R, t), chunk=3)
     np.testing.assert_allclose(R_b.numpy(), R_np, atol=1e-8)
