@@ -113,7 +113,8 @@ def solve_pnp_batch(
         A problem has converged when its update moves the keypoints by less than
         ``tol_px`` pixels (root mean square, to first order: ``δᵀ JᵀJ δ ≤ N tol_px²``).
     chunk : int
-        Problems solved together (bounds the memory: about 1 KB per problem per point).
+        Problems iterated together (bounds the memory: about 1 KB per problem per point);
+        converged problems leave the working set and new ones join it.
     compile : bool
         Fuse the iteration with ``torch.compile`` (a C++ compiler is needed; about 10×
         faster on large batches, after a one-off compilation of tens of seconds).
@@ -125,7 +126,7 @@ def solve_pnp_batch(
         ``R ← exp([ω]×) R``; the step solves ``(∇²G + μ diag(JᵀJ)) δ = −∇G`` with the
         exact Hessian where that matrix is positive definite, Gauss–Newton's ``JᵀJ``
         elsewhere, and Marquardt's rule for μ. Each problem keeps its own damping and
-        stops on its own; the stragglers are iterated alone.
+        stops on its own.
 
     Examples
     --------
@@ -140,39 +141,59 @@ def solve_pnp_batch(
     if P.shape != (N, 3):
         raise ValueError(f"P: expected shape ({N}, 3) to match V, got {tuple(P.shape)}")
     K = _tensor(K, "K", (2, 3)).expand(B, 3, 3)
-    for k in K.reshape(-1, 9).unique(dim=0):
-        _checks.intrinsics(k.reshape(3, 3).numpy())
+    pattern = torch.stack([K[:, 0, 0], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]], -1)
+    if not torch.equal(K, _intrinsics_matrix(pattern)) or (pattern[:, [0, 2]] <= 0).any():
+        raise ValueError("K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     R = _tensor(init[0], "init[0]", (2, 3)).expand(B, 3, 3)
     t = _tensor(init[1], "init[1]", (1, 2)).expand(B, 3)
-    step = _compiled_lm_step() if compile else _lm_step
+    step, terms = _compiled() if compile else (_lm_step, _normal_equations)
 
     R_out, t_out = torch.empty(B, 3, 3, dtype=torch.float64), torch.empty(B, 3, dtype=torch.float64)
-    for lo in range(0, B, chunk):
-        sl = slice(lo, min(lo + chunk, B))
-        # Structure of arrays: the batch is the last (contiguous) dimension.
-        intr = torch.stack([K[sl, 0, 0], K[sl, 0, 2], K[sl, 1, 1], K[sl, 1, 2]])
-        Vu, Vv = V[sl, :, 0].T.contiguous(), V[sl, :, 1].T.contiguous()
-        Rc, tc = R[sl].permute(1, 2, 0).contiguous(), t[sl].T.contiguous()
-        H, S, g, cost = _normal_equations(P, intr, Rc, tc, Vu, Vv)
-        mu = torch.full_like(cost, 1e-3)
-        active = torch.ones_like(cost, dtype=torch.bool)
-        work = torch.arange(cost.numel())  # problems still iterating (chunk indices)
-        state = (intr, Vu, Vv, Rc, tc, H, S, g, cost, mu, active)
-        for _ in range(max_iter):
-            state = state[:3] + step(P, *state, N * tol_px**2)
-            n_active = int(state[-1].sum())
-            if n_active == 0:
-                break
-            if n_active <= work.numel() // 2:  # keep iterating the stragglers only
-                Rc[..., work], tc[:, work] = state[3], state[4]
-                keep = state[-1].nonzero().squeeze(1)
-                work = work[keep]
-                state = tuple(x[..., keep] for x in state)
-        Rc[..., work], tc[:, work] = state[3], state[4]
-        R_out[sl], t_out[sl] = Rc.permute(2, 0, 1), tc.T
+    # A working set of at most `chunk` problems, batch last (structure of arrays): it is
+    # topped up with new problems as others converge, so the slow few never iterate alone.
+    work, fed = None, 0
+    while True:
+        size = 0 if work is None else work[0].numel()
+        if fed < B and size <= chunk // 2:
+            take = slice(fed, min(fed + chunk - size, B))
+            fresh = _initial_state(terms, P, K[take], V[take], R[take], t[take], fed)
+            work = fresh if work is None else tuple(torch.cat(x, -1) for x in zip(work, fresh))
+            fed = take.stop
+        if work is None or work[0].numel() == 0:
+            break
+        index, iters, intr, Vu, Vv, *state = work
+        state = step(P, intr, Vu, Vv, *state, N * tol_px**2)
+        iters = iters + 1
+        work = (index, iters, intr, Vu, Vv, *state)
+        done = ~state[-1] | (iters >= max_iter)
+        n_done = int(done.sum())
+        if n_done and (4 * n_done >= done.numel() or fed == B):
+            R_out[index[done]] = state[0][..., done].permute(2, 0, 1)
+            t_out[index[done]] = state[1][:, done].T
+            work = tuple(x[..., ~done] for x in work)
     if as_numpy:
         return R_out.numpy(), t_out.numpy()
     return R_out, t_out
+
+
+def _intrinsics_matrix(f):
+    """``(B, 3, 3)`` pinhole matrices from ``(B, 4)`` rows ``[fx, cx, fy, cy]``."""
+    zero, one = torch.zeros_like(f[:, 0]), torch.ones_like(f[:, 0])
+    rows = [[f[:, 0], zero, f[:, 1]], [zero, f[:, 2], f[:, 3]], [zero, zero, one]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def _initial_state(terms, P, K, V, R, t, first: int) -> tuple:
+    """LM state of problems ``first, first + 1, …`` (batch last): global index, iteration
+    count, intrinsics ``[fx, cx, fy, cy]``, keypoints, pose, Newton terms, damping, active."""
+    intr = torch.stack([K[:, 0, 0], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]])
+    Vu, Vv = V[:, :, 0].T.contiguous(), V[:, :, 1].T.contiguous()
+    Rc, tc = R.permute(1, 2, 0).contiguous(), t.T.contiguous()
+    H, S, g, cost = terms(P, intr, Rc, tc, Vu, Vv)
+    index = torch.arange(first, first + cost.numel())
+    mu = torch.full_like(cost, 1e-3)
+    active = torch.ones_like(cost, dtype=torch.bool)
+    return (index, torch.zeros_like(index), intr, Vu, Vv, Rc, tc, H, S, g, cost, mu, active)
 
 
 def _normal_equations(P, intr, R, t, Vu, Vv):
@@ -295,8 +316,9 @@ def _lm_step(P, intr, Vu, Vv, R, t, H, S, g, cost, mu, active, step_tol2):
 
 
 @functools.cache
-def _compiled_lm_step():
-    return torch.compile(_lm_step, dynamic=True)
+def _compiled():
+    """The fused (torch.compile) LM step and Newton terms, compiled once per process."""
+    return torch.compile(_lm_step, dynamic=True), torch.compile(_normal_equations, dynamic=True)
 
 
 def _tensor(x, name: str, ndim) -> torch.Tensor:
