@@ -27,7 +27,7 @@ from kpstudy.geometry import (
     project_batch,
     wrap_degrees,
 )
-from kpstudy.pnp import solve_pnp_batch
+from kpstudy.pnp import solve_pnp, solve_pnp_batch
 from kpstudy.sensitivity import pose_sensitivity
 
 #: Paper's tolerance scale: ε_r = α·EPS_R (degrees), ε_t = α·EPS_T (metres).
@@ -163,8 +163,6 @@ def soundness_completeness_table(
         One row per (κ, α): ``soundness``, ``completeness`` (pooled over images),
         ``soundness_min_image``, ``mean_dv``, ``images``, ``samples``.
     """
-    from kpstudy.pnp import solve_pnp
-
     V = _checks.float_array(V, "V", (None, None, 2))
     I = V.shape[0]
     K = _per_image(K, I)
