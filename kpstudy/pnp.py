@@ -116,8 +116,8 @@ def solve_pnp_batch(
         Problems iterated together (bounds the memory: about 1 KB per problem per point);
         converged problems leave the working set and new ones join it.
     compile : bool
-        Fuse the iteration with ``torch.compile`` (a C++ compiler is needed; about 10×
-        faster on large batches, after a one-off compilation of tens of seconds).
+        Fuse the iteration with ``torch.compile`` (a C++ compiler is needed; measured 3.8×
+        faster on 1e5 problems here, after a one-off compilation of about 10 s).
 
     Returns
     -------
