@@ -1,0 +1,29 @@
+"""The verifier: sound bounds and branch and bound over convex hulls of images.
+
+An instance is a problem (model, input set, output spec) × a bound method × a search
+(DESIGN.md §4.6–4.8): :class:`ConvexHull` (exact), :class:`Parallelotope` (the
+ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
+:func:`output_bounds` with ``'ibp'``, ``'forward'`` or ``'crown'``; :func:`verify` returns
+a :class:`Result` — ``holds``, ``violated`` with a re-checked counterexample, or
+``unknown``; :func:`export_instance` writes ONNX + VNN-LIB for other verifiers.
+"""
+
+from kpstudy.verify.bab import verify
+from kpstudy.verify.bounds import output_bounds
+from kpstudy.verify.export import export_instance, read_vnnlib_polytope
+from kpstudy.verify.result import Counterexample, Result
+from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
+from kpstudy.verify.spec import ArgmaxSpec
+
+__all__ = [
+    "ArgmaxSpec",
+    "Box",
+    "ConvexHull",
+    "Counterexample",
+    "Parallelotope",
+    "Result",
+    "export_instance",
+    "output_bounds",
+    "read_vnnlib_polytope",
+    "verify",
+]

@@ -1,0 +1,317 @@
+"""Branch and bound over the input set's parameter domain, with an attack at every node.
+
+Breadth-first: the open nodes are bounded ``batch`` at a time; a keypoint group is
+closed in a node when every one of its margin rows has a lower bound above ``tol`` (or
+above zero when recomputed in float64); the concrete model is evaluated at every open
+node's vertices and centroid and, where the bounds fail, projected gradient descent on
+the worst margin looks for a counterexample inside the node; nodes still open are split
+(longest edge bisection for a simplex, longest side for a cube, widest pixel for a box),
+the two children exactly covering their parent.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import torch
+
+from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
+from kpstudy.verify.graph import trace
+from kpstudy.verify.result import Counterexample, Result
+
+
+def verify(
+    model,
+    input_set,
+    spec,
+    *,
+    method: str = "auto",
+    timeout: float = 60.0,
+    max_nodes: int | None = None,
+    batch: int | None = None,
+    tol: float = 1e-5,
+    attack_steps: int = 8,
+    stop_on_violation: bool = True,
+    memory: int = 2**25,
+) -> Result:
+    """Prove or refute ``spec`` for every point of ``input_set``.
+
+    Parameters
+    ----------
+    model : nn.Module
+        Eval-mode network of the operators of :mod:`kpstudy.verify.graph`; its flattened
+        output has ``spec.n_outputs`` entries.
+    input_set : ConvexHull, Parallelotope or Box
+    spec : ArgmaxSpec
+    method : {'auto', 'ibp', 'forward', 'crown'}
+        Bounds at each node; ``'auto'`` is ``'forward'`` (the cheapest method that keeps
+        the margins' dependence on λ; ``'crown'`` costs a backward pass per margin row).
+    timeout : float
+        Seconds before the search stops with ``'unknown'``.
+    max_nodes : int, optional
+        Most nodes to bound.
+    batch : int, optional
+        Nodes bounded together (default: as many as fit in ``memory`` elements).
+    tol : float
+        Margin lower bounds must exceed this to close a group (those in ``(0, tol]`` are
+        recomputed in float64 when the model is not float64).
+    attack_steps : int
+        Projected-gradient steps per open node (four times as many at the root).
+    stop_on_violation : bool
+        Stop at the first counterexample (other open groups stay ``'unknown'``).
+    memory : int
+        Element budget of the largest bound tensor.
+
+    Returns
+    -------
+    Result
+
+    Examples
+    --------
+    >>> result = verify(proxy, ConvexHull(images), ArgmaxSpec(sizes, targets))  # doctest: +SKIP
+    >>> result.status, result.nodes
+    ('holds', 3)
+    """
+    start = time.perf_counter()
+    method = _check(method, timeout, max_nodes, batch, tol)
+    graph = trace(model, example_input(input_set))
+    spec.check_output(graph.output_size)
+    search = _Search(model, graph, input_set, spec, method, tol, memory)
+    if batch is None:
+        per_node = 4 * sum(_numel(n.shape) for n in graph.nodes[:2]) + max(
+            _numel(n.shape) for n in graph.nodes
+        )
+        q = input_set.n + 1 if input_set.domain != "box" else 1
+        batch = max(1, min(64, memory // (4 * q * per_node)))
+    G = spec.n_groups
+    open_groups = torch.zeros(G, dtype=torch.bool)
+    open_groups[spec.active_groups] = True
+    violated = torch.zeros(G, dtype=torch.bool)
+    counterexample = None
+    queue = [(input_set.root(), open_groups[None].clone())]
+    nodes_done, depth, root_margin = 0, 0, None
+    timed_out = False
+    with torch.no_grad():
+        while queue:
+            if time.perf_counter() - start > timeout or (max_nodes and nodes_done >= max_nodes):
+                timed_out = True
+                break
+            nodes, mask = _take(queue, batch)
+            mask = mask & ~violated  # a refuted group needs no proof
+            margin, proved = search.group_margins(nodes, mask)  # (B, G)
+            if root_margin is None:
+                root_margin = margin[0].clone()
+            nodes_done += len(nodes)
+            mask = mask & ~proved
+            steps = attack_steps * (4 if depth == 0 else 1)
+            found = search.attack(nodes, mask, steps)
+            for g, cex in found.items():
+                if not violated[g]:
+                    violated[g] = True
+                    counterexample = counterexample or cex
+            mask = mask & ~violated
+            if counterexample is not None and stop_on_violation:
+                queue = [(nodes[mask.any(1)], mask[mask.any(1)])] + queue
+                break
+            keep = mask.any(1)
+            if keep.any():
+                children = input_set.split(nodes[keep])
+                queue.append((children, mask[keep].repeat(2, 1)))
+                depth += 1
+    still_open = torch.zeros(G, dtype=torch.bool)
+    for _, m in queue:
+        still_open |= m.any(0)
+    group_status = []
+    for g in range(G):
+        if spec.targets[g] is None:
+            group_status.append("excluded")
+        elif violated[g]:
+            group_status.append("violated")
+        elif still_open[g]:
+            group_status.append("unknown")
+        else:
+            group_status.append("holds")
+    if violated.any():
+        status = "violated"
+    elif still_open.any():
+        status = "unknown"
+    else:
+        status = "holds"
+    stats = {
+        "method": method,
+        "depth": depth,
+        "batch": batch,
+        "timed_out": timed_out,
+        "float64_rechecks": search.rechecks,
+        "root_margin": None if root_margin is None else root_margin.tolist(),
+    }
+    return Result(
+        status, group_status, counterexample, time.perf_counter() - start, nodes_done, stats
+    )
+
+
+def _check(method, timeout, max_nodes, batch, tol) -> str:
+    if method == "auto":
+        method = "forward"
+    if method not in METHODS:
+        raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {method!r}")
+    if not timeout > 0:
+        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
+    for name, v in (("max_nodes", max_nodes), ("batch", batch)):
+        if v is not None and not (isinstance(v, int) and v >= 1):
+            raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
+    if not tol >= 0:
+        raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
+    return method
+
+
+def _numel(shape) -> int:
+    n = 1
+    for s in shape:
+        n *= s
+    return n
+
+
+def _take(queue: list, batch: int):
+    """Pop up to ``batch`` nodes from the front of the queue (breadth first)."""
+    nodes, masks, count = [], [], 0
+    while queue and count < batch:
+        n, m = queue.pop(0)
+        room = batch - count
+        if len(n) > room:
+            queue.insert(0, (n[room:], m[room:]))
+            n, m = n[:room], m[:room]
+        nodes.append(n)
+        masks.append(m)
+        count += len(n)
+    return torch.cat(nodes), torch.cat(masks)
+
+
+class _Search:
+    """Bounds and attacks for one instance."""
+
+    def __init__(self, model, graph, input_set, spec, method, tol, memory):
+        self.model, self.graph, self.set, self.spec = model, graph, input_set, spec
+        self.method, self.tol, self.memory = method, tol, memory
+        self.graph64 = None
+        self.rechecks = 0
+
+    def group_margins(self, nodes, mask) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lower bounds ``(B, G)`` of each open group's smallest margin (+inf if closed
+        already), and whether each is proved: above ``tol``, or above zero in float64."""
+        spec = self.spec
+        rows = mask[:, spec.row_group].any(0)  # rows needed by some node of the batch
+        region = node_region(self.set, nodes, self.graph.dtype)
+        lower = torch.full((len(nodes), spec.n_rows), float("inf"), dtype=torch.float64)
+        lower[:, rows] = row_bounds(
+            self.graph,
+            region,
+            spec.row_pos[rows],
+            spec.row_neg[rows],
+            self.method,
+            memory=self.memory,
+        ).double()
+        margin = torch.where(mask, spec.group_min(lower), torch.inf)
+        if self.graph.dtype == torch.float64:
+            return margin, margin > 0
+        proved = margin > self.tol
+        close = (margin > 0) & ~proved
+        if close.any():
+            proved |= close & self._float64_proves(nodes, close)
+        return margin, proved
+
+    def _float64_proves(self, nodes, close) -> torch.Tensor:
+        """Whether float64 bounds prove the groups with a close call ``(B, G)``."""
+        if self.graph64 is None:
+            model64 = copy.deepcopy(self.model).double()
+            self.graph64 = trace(model64, example_input(self.set).double())
+        which = close.any(1)
+        self.rechecks += int(which.sum())
+        region = node_region(self.set, nodes[which], torch.float64)
+        spec = self.spec
+        lower = row_bounds(self.graph64, region, spec.row_pos, spec.row_neg, self.method)
+        out = torch.zeros(close.shape, dtype=torch.bool)
+        out[which] = spec.group_min(lower) > 0
+        return out
+
+    # -- attack ------------------------------------------------------------------------
+    def attack(self, nodes, mask, steps: int) -> dict[int, Counterexample]:
+        """Counterexamples for open groups: node corners and centroid, then projected
+        gradient descent on the worst open margin. Returns re-checked ones by group."""
+        open_nodes = mask.any(1)
+        if not open_nodes.any():
+            return {}
+        nodes, mask = nodes[open_nodes], mask[open_nodes]
+        points = self.set.node_points(nodes)  # (B, P, …)
+        B, P = points.shape[:2]
+        flat = points.reshape(B * P, *points.shape[2:])
+        found = self._recheck(flat, mask.repeat_interleave(P, 0))
+        if found or steps == 0:
+            return found
+        best = self._descend(nodes, mask, steps)
+        return self._recheck(best, mask)
+
+    def _descend(self, nodes, mask, steps):
+        """Projected gradient descent on each node's worst open margin; returns points."""
+        B = len(nodes)
+        simplex = self.set.domain == "simplex"
+        if simplex:
+            w = torch.full((B, nodes.shape[1]), 1.0 / nodes.shape[1], dtype=torch.float64)
+        else:
+            shape = (B, *nodes.shape[2:])
+            w = torch.full(shape, 0.5, dtype=torch.float64)
+        rows = mask[:, self.spec.row_group]
+        lr = 0.5
+        for _ in range(steps):
+            w = w.detach().requires_grad_(True)
+            with torch.enable_grad():
+                x = self.set.image(self.set.node_point(nodes, w))
+                y = self.model(x).flatten(1)
+                m = torch.where(rows, self.spec.margins(y).double(), torch.inf)
+                worst = m.min(1).values
+                (grad,) = torch.autograd.grad(worst.sum(), w)
+            scale = grad.flatten(1).abs().amax(1).clamp_min(1e-30)
+            step = grad / scale.reshape(-1, *([1] * (grad.ndim - 1)))
+            w = w.detach() - lr * step
+            w = _project_simplex(w) if simplex else w.clamp(0.0, 1.0)
+            lr *= 0.7
+        return self.set.node_point(nodes, w.detach())
+
+    def _recheck(self, points, mask) -> dict[int, Counterexample]:
+        """Counterexamples among ``points`` (set parameters): inside the set, and failing
+        an open group on the concrete model."""
+        points = self._into_set(points)
+        inside = self.set.contains_point(points)
+        x = self.set.image(points)
+        y = self.model(x).flatten(1)
+        margin = self.spec.group_min(self.spec.margins(y).double())
+        bad = (margin <= 0) & mask & inside[:, None]
+        found = {}
+        for i, g in bad.nonzero().tolist():
+            if g not in found:
+                found[g] = Counterexample(points[i], x[i], g, float(margin[i, g]))
+        return found
+
+    def _into_set(self, points):
+        """Points pulled exactly into the set (rounding can leave λ a hair outside)."""
+        if self.set.domain == "box":
+            return torch.minimum(torch.maximum(points, self.set.lower), self.set.upper)
+        lam = points.clamp_min(0.0)
+        if self.set.domain == "simplex":
+            total = lam.sum(-1, keepdim=True)
+            lam = torch.where(total > 1.0, lam / total, lam)
+            lam = torch.where(lam.sum(-1, keepdim=True) > 1.0, lam * (1 - 1e-12), lam)
+            return lam
+        return lam.clamp_max(1.0)
+
+
+def _project_simplex(w: torch.Tensor) -> torch.Tensor:
+    """Euclidean projection of each row of ``w (B, k)`` onto the probability simplex."""
+    u, _ = torch.sort(w, dim=1, descending=True)
+    css = u.cumsum(1) - 1.0
+    k = torch.arange(1, w.shape[1] + 1, dtype=w.dtype)
+    cond = u - css / k > 0
+    rho = cond.to(torch.int64).cumsum(1).argmax(1, keepdim=True)
+    theta = css.gather(1, rho) / (rho + 1).to(w.dtype)
+    return (w - theta).clamp_min(0.0)

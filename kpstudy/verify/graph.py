@@ -1,0 +1,200 @@
+"""Trace a torch model into a graph of supported operators (torch.fx).
+
+Supported: ``Conv2d``, ``ConvTranspose2d``, ``BatchNorm2d`` (eval), ``ReLU``,
+``AvgPool2d``, the proxy's :class:`~kpstudy.pooling.CellAvgPool2d`, ``MaxPool2d``,
+``Linear``, ``Flatten``/``flatten``, residual ``+``, ``torch.cat``, slicing that keeps the
+batch dimension, ``Identity`` and ``Dropout`` (eval). Anything else is refused with an
+error naming the operation and the node.
+"""
+
+from __future__ import annotations
+
+import operator
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import fx, nn
+
+from kpstudy.pooling import CellAvgPool2d
+from kpstudy.verify import ops
+
+_MODULES = {
+    nn.Conv2d: ops.Conv,
+    nn.ConvTranspose2d: ops.ConvTranspose,
+    nn.Linear: ops.Dense,
+    nn.BatchNorm2d: ops.BatchNorm,
+    nn.AvgPool2d: ops.Pool,
+    CellAvgPool2d: ops.Pool,
+    nn.MaxPool2d: ops.MaxPool,
+    nn.ReLU: lambda m: ops.ReLU(),
+    nn.Flatten: lambda m: ops.Flatten(m.start_dim, m.end_dim),
+    nn.Identity: lambda m: ops.Identity(),
+    nn.Dropout: lambda m: _eval_identity(m),
+}
+
+
+def _eval_identity(m: nn.Module) -> ops.Identity:
+    if m.training:
+        raise ValueError("model: Dropout needs eval mode (call model.eval())")
+    return ops.Identity()
+
+
+class _Tracer(fx.Tracer):
+    def is_leaf_module(self, m: nn.Module, qualname: str) -> bool:
+        return type(m) in _MODULES or super().is_leaf_module(m, qualname)
+
+
+@dataclass
+class Node:
+    """One graph value: the operator that makes it from ``inputs`` (indices of earlier
+    nodes; node 0 is the model input, ``op=None``) and its shape without the batch."""
+
+    name: str
+    op: ops.Op | None
+    inputs: tuple[int, ...]
+    shape: tuple[int, ...]
+    offset: torch.Tensor | None = None  # ``forward(0)`` of an affine op, (1, *shape)
+
+
+class Graph:
+    """A traced model: :attr:`nodes` in topological order, the last one the output."""
+
+    def __init__(self, nodes: list[Node], dtype: torch.dtype) -> None:
+        self.nodes = nodes
+        self.dtype = dtype
+        self.consumers = [[] for _ in nodes]
+        for i, node in enumerate(nodes):
+            for j in node.inputs:
+                self.consumers[j].append(i)
+
+    @property
+    def output_size(self) -> int:
+        n = 1
+        for s in self.nodes[-1].shape:
+            n *= s
+        return n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Concrete evaluation ``(B, *S) → (B, *out)`` through the traced operators."""
+        values = [x]
+        for node in self.nodes[1:]:
+            values.append(node.op.forward(*(values[j] for j in node.inputs)))
+        return values[-1]
+
+
+def trace(model: nn.Module, example: torch.Tensor) -> Graph:
+    """The graph of ``model`` for inputs shaped like ``example (1, *S)``.
+
+    Raises
+    ------
+    ValueError
+        ``model: unsupported operation …`` naming the operation and node, or a
+        BatchNorm in training mode.
+    """
+    if not isinstance(model, nn.Module):
+        raise ValueError(f"model: expected a torch.nn.Module, got {type(model).__name__}")
+    try:
+        gm = fx.GraphModule(model, _Tracer().trace(model))
+    except Exception as exc:  # data-dependent control flow, unsupported Python
+        raise ValueError(f"model: could not be traced with torch.fx ({exc})") from exc
+    modules = dict(gm.named_modules())
+    index: dict[str, int] = {}
+    nodes: list[Node] = []
+    dtype = next((p.dtype for p in model.parameters()), example.dtype)
+    for n in gm.graph.nodes:
+        if n.op == "placeholder":
+            if nodes:
+                raise ValueError("model: expected a single input tensor")
+            index[n.name] = 0
+            nodes.append(Node(n.name, None, (), tuple(example.shape[1:])))
+            continue
+        if n.op == "output":
+            if not isinstance(n.args[0], fx.Node):
+                raise ValueError("model: expected a single output tensor")
+            output = index[n.args[0].name]
+            continue
+        op, args = _operator(n, modules)
+        ins = tuple(index[a.name] for a in args)
+        index[n.name] = len(nodes)
+        nodes.append(Node(n.name, op, ins, ()))
+    if output != len(nodes) - 1:
+        raise ValueError("model: the output must be the last operation")
+    try:
+        _infer_shapes(nodes, example.to(dtype))
+    except RuntimeError as exc:  # e.g. channels or sizes that do not fit the first layer
+        raise ValueError(
+            f"input_set: images of shape {tuple(example.shape[1:])} do not fit the model ({exc})"
+        ) from exc
+    return Graph(nodes, dtype)
+
+
+def _operator(n: fx.Node, modules: dict) -> tuple[ops.Op, list[fx.Node]]:
+    """The :mod:`ops` operator of an fx node, and the fx nodes it reads."""
+    where = f"(node {n.name!r})"
+    if n.op == "call_module":
+        m = modules[n.target]
+        make = _MODULES.get(type(m))
+        if make is None:
+            raise ValueError(f"model: unsupported operation {type(m).__name__} {where}")
+        return make(m), _tensor_args(n, 1, where)
+    if n.op == "call_function":
+        f = n.target
+        if f in (operator.add, torch.add):
+            if n.kwargs or len(n.args) != 2:
+                raise ValueError(f"model: only x + y of two tensors is supported {where}")
+            return ops.Add(), _tensor_args(n, 2, where)
+        if f in (torch.relu, F.relu):
+            return ops.ReLU(), _tensor_args(n, 1, where, n.args[:1])
+        if f in (torch.cat, torch.concat):
+            xs = list(n.args[0])
+            dim = n.args[1] if len(n.args) > 1 else n.kwargs.get("dim", 0)
+            return ops.Cat(len(xs), dim), _tensor_args(n, len(xs), where, xs)
+        if f is torch.flatten:
+            start = n.args[1] if len(n.args) > 1 else n.kwargs.get("start_dim", 0)
+            end = n.args[2] if len(n.args) > 2 else n.kwargs.get("end_dim", -1)
+            return ops.Flatten(start, end), _tensor_args(n, 1, where, n.args[:1])
+        if f is operator.getitem:
+            idx = n.args[1] if isinstance(n.args[1], tuple) else (n.args[1],)
+            if not idx or idx[0] != slice(None) or any(isinstance(i, fx.Node) for i in idx):
+                raise ValueError(f"model: only slicing that keeps the batch is supported {where}")
+            return ops.Slice(idx), _tensor_args(n, 1, where, n.args[:1])
+        name = getattr(f, "__name__", str(f))
+        raise ValueError(f"model: unsupported operation {name} {where}")
+    if n.op == "call_method":
+        if n.target == "flatten":
+            start = n.args[1] if len(n.args) > 1 else n.kwargs.get("start_dim", 0)
+            end = n.args[2] if len(n.args) > 2 else n.kwargs.get("end_dim", -1)
+            return ops.Flatten(start, end), _tensor_args(n, 1, where, n.args[:1])
+        if n.target == "relu":
+            return ops.ReLU(), _tensor_args(n, 1, where, n.args[:1])
+        raise ValueError(f"model: unsupported operation Tensor.{n.target} {where}")
+    raise ValueError(f"model: unsupported operation {n.op} {n.target} {where}")
+
+
+def _tensor_args(n: fx.Node, count: int, where: str, args=None) -> list[fx.Node]:
+    args = list(n.args if args is None else args)
+    if len(args) != count or not all(isinstance(a, fx.Node) for a in args):
+        raise ValueError(f"model: expected {count} tensor argument(s) {where}")
+    return args
+
+
+def _infer_shapes(nodes: list[Node], example: torch.Tensor) -> None:
+    """Fill in output shapes and affine offsets; refuse ops that would mix the batch."""
+    values = [example]
+    with torch.no_grad():
+        for node in nodes[1:]:
+            xs = [values[j] for j in node.inputs]
+            op = node.op
+            if isinstance(op, (ops.Flatten, ops.Cat)):
+                dim = op.start_dim if isinstance(op, ops.Flatten) else op.dim
+                if dim % xs[0].ndim == 0:
+                    raise ValueError(
+                        f"model: {type(op).__name__.lower()} over the batch dimension "
+                        f"(node {node.name!r})"
+                    )
+            y = op.forward(*xs)
+            node.shape = tuple(y.shape[1:])
+            if op.kind == "affine":
+                node.offset = op.forward(*(torch.zeros_like(x) for x in xs))
+            values.append(y)

@@ -1,0 +1,209 @@
+"""Bound rules of every supported operator, in one place (a new layer touches this file).
+
+Affine operators (convolutions, linear, batch norm in eval, average pools, flatten,
+add, concatenation, channel slicing) give three maps:
+
+* ``forward(*xs)`` — the concrete operator (with its bias);
+* ``linear(*xs)`` — its homogeneous part (no bias), used for coefficient stacks and,
+  through autograd's vector–Jacobian product, for backward (CROWN) propagation;
+* ``abs_linear(*xs)`` — the same map with absolute weights, so that a lower/upper pair
+  ``mid ± rad`` goes to ``linear(mid) + bias ± abs_linear(rad)`` — that is
+  ``W⁺L + W⁻U + b`` and ``W⁺U + W⁻L + b``, sound for every affine function in between.
+
+Nonlinear operators (ReLU, max pooling) carry their relaxations in
+:mod:`kpstudy.verify.bounds`. All maps act on a leading batch dimension that the
+bound engine uses for (node, coefficient) pairs, so no operator may mix the batch.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class Op:
+    """A graph operator. ``kind`` is ``'affine'``, ``'relu'`` or ``'maxpool'``."""
+
+    kind = "affine"
+    n_inputs = 1
+
+    def forward(self, *xs):
+        raise NotImplementedError
+
+    def linear(self, *xs):
+        return self.forward(*xs)
+
+    def abs_linear(self, *xs):
+        return self.linear(*xs)
+
+    def to(self, dtype) -> Op:
+        return self
+
+
+class Conv(Op):
+    def __init__(self, m: nn.Conv2d):
+        if m.padding_mode != "zeros":
+            raise ValueError(f"model: Conv2d padding_mode {m.padding_mode!r} is not supported")
+        self.m = m
+
+    def forward(self, x):
+        return self.m(x)
+
+    def _conv(self, x, w):
+        m = self.m
+        return F.conv2d(x, w, None, m.stride, m.padding, m.dilation, m.groups)
+
+    def linear(self, x):
+        return self._conv(x, self.m.weight)
+
+    def abs_linear(self, x):
+        return self._conv(x, self.m.weight.abs())
+
+
+class ConvTranspose(Op):
+    def __init__(self, m: nn.ConvTranspose2d):
+        if m.padding_mode != "zeros":
+            raise ValueError("model: ConvTranspose2d padding_mode must be 'zeros'")
+        self.m = m
+
+    def forward(self, x):
+        return self.m(x)
+
+    def _conv(self, x, w):
+        m = self.m
+        return F.conv_transpose2d(
+            x, w, None, m.stride, m.padding, m.output_padding, m.groups, m.dilation
+        )
+
+    def linear(self, x):
+        return self._conv(x, self.m.weight)
+
+    def abs_linear(self, x):
+        return self._conv(x, self.m.weight.abs())
+
+
+class Dense(Op):
+    def __init__(self, m: nn.Linear):
+        self.m = m
+
+    def forward(self, x):
+        return self.m(x)
+
+    def linear(self, x):
+        return F.linear(x, self.m.weight)
+
+    def abs_linear(self, x):
+        return F.linear(x, self.m.weight.abs())
+
+
+class BatchNorm(Op):
+    """Eval-mode batch norm: the per-channel affine map ``x·s + (β − μ s)``."""
+
+    def __init__(self, m: nn.BatchNorm2d):
+        if m.training or m.running_mean is None:
+            raise ValueError(
+                "model: BatchNorm2d needs eval mode and running statistics (call model.eval())"
+            )
+        self.m = m
+
+    def _scale(self, x):
+        m = self.m
+        s = torch.rsqrt(m.running_var + m.eps)
+        if m.weight is not None:
+            s = s * m.weight
+        return s.to(x.dtype).reshape(-1, 1, 1)
+
+    def forward(self, x):
+        return self.m(x)
+
+    def linear(self, x):
+        return x * self._scale(x)
+
+    def abs_linear(self, x):
+        return x * self._scale(x).abs()
+
+
+class Pool(Op):
+    """An average pool (``nn.AvgPool2d`` or the proxy's cell pool): linear, weights >= 0."""
+
+    def __init__(self, m: nn.Module):
+        self.m = m
+
+    def forward(self, x):
+        return self.m(x)
+
+
+class Flatten(Op):
+    def __init__(self, start_dim: int, end_dim: int):
+        self.start_dim, self.end_dim = start_dim, end_dim
+
+    def forward(self, x):
+        return x.flatten(self.start_dim, self.end_dim)
+
+
+class Add(Op):
+    n_inputs = 2
+
+    def forward(self, x, y):
+        return x + y
+
+
+class Cat(Op):
+    def __init__(self, n_inputs: int, dim: int):
+        self.n_inputs, self.dim = n_inputs, dim
+
+    def forward(self, *xs):
+        return torch.cat(xs, self.dim)
+
+
+class Slice(Op):
+    def __init__(self, index: tuple):
+        self.index = index
+
+    def forward(self, x):
+        return x[self.index]
+
+
+class Identity(Op):
+    def forward(self, x):
+        return x
+
+
+class ReLU(Op):
+    kind = "relu"
+
+    def forward(self, x):
+        return torch.relu(x)
+
+
+class MaxPool(Op):
+    """``nn.MaxPool2d`` (no dilation, no ceil mode); windows are read with ``F.unfold``."""
+
+    kind = "maxpool"
+
+    def __init__(self, m: nn.MaxPool2d):
+        pair = lambda v: (v, v) if isinstance(v, int) else tuple(v)  # noqa: E731
+        if pair(m.dilation) != (1, 1) or m.ceil_mode or m.return_indices:
+            raise ValueError("model: MaxPool2d with dilation, ceil_mode or return_indices")
+        self.m = m
+        self.kernel, self.stride, self.padding = (
+            pair(m.kernel_size),
+            pair(m.stride or m.kernel_size),
+            pair(m.padding),
+        )
+
+    def forward(self, x):
+        return self.m(x)
+
+    def windows(self, x, fill: float):
+        """``x (N, C, H, W)`` → windows ``(N, C, k_h·k_w, H_out·W_out)``, padding = ``fill``."""
+        ph, pw = self.padding
+        x = F.pad(x, (pw, pw, ph, ph), value=fill)
+        N, C = x.shape[:2]
+        cols = F.unfold(x, self.kernel, stride=self.stride)
+        return cols.reshape(N, C, self.kernel[0] * self.kernel[1], -1)
+
+    def out_size(self, h: int, w: int) -> tuple[int, int]:
+        (kh, kw), (sh, sw), (ph, pw) = self.kernel, self.stride, self.padding
+        return (h + 2 * ph - kh) // sh + 1, (w + 2 * pw - kw) // sw + 1

@@ -1,0 +1,141 @@
+"""Branch and bound: never 'holds' on a violated instance, counterexamples reproduce,
+and the search decides small instances that the root bounds alone cannot."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
+from tests.verify_nets import MixedNet, PoolProxy, hull_vertices
+
+
+def _spec_at_seed(net, x0, group_sizes):
+    """Targets = the model's own argmax on the seed image, per group."""
+    with torch.no_grad():
+        y = net(x0[None]).flatten()
+    targets, lo = [], 0
+    for s in group_sizes:
+        targets.append(int(y[lo : lo + s].argmax()))
+        lo += s
+    return ArgmaxSpec(group_sizes, targets)
+
+
+def _sampled_violation(net, s, spec, seed):
+    pts = torch.cat(
+        [s.sample(1500, seed), s.sample(300, seed, "vertices"), s.sample(300, seed, "edges")]
+    )
+    with torch.no_grad():
+        m = spec.group_min(spec.margins(net(s.image(pts)).flatten(1)))
+    return bool((m <= 0).any())
+
+
+def _check_counterexample(net, s, spec, result):
+    c = result.counterexample
+    assert c is not None and bool(s.contains_point(c.point))
+    torch.testing.assert_close(c.image, s.image(c.point))
+    with torch.no_grad():
+        m = spec.group_min(spec.margins(net(c.image[None]).flatten(1)))
+    assert m[0, c.group] <= 0 and result.group_status[c.group] == "violated"
+
+
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("set_type", [ConvexHull, Parallelotope])
+def test_verify_is_sound_and_decides_mixed_nets(seed, set_type):
+    net = MixedNet(seed)
+    V = hull_vertices(seed, 1 + seed % 4, (2, 8, 8), spread=0.05 + 0.05 * (seed % 3))
+    spec = _spec_at_seed(net, V[0], [3, 3])
+    s = set_type(V)
+    result = verify(net, s, spec, timeout=30)
+    assert result.status in ("holds", "violated")  # complete on these small instances
+    if result.status == "holds":
+        assert not _sampled_violation(net, s, spec, seed)
+        assert result.group_status == ["holds", "holds"]
+    else:
+        _check_counterexample(net, s, spec, result)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_verify_proxy_with_excluded_group(seed):
+    net = PoolProxy(seed)
+    V = hull_vertices(seed, 3, (1, 10, 10), spread=0.1)
+    full = _spec_at_seed(net, V[0], net.group_sizes)
+    spec = ArgmaxSpec(net.group_sizes, [full.targets[0], None])
+    result = verify(net, ConvexHull(V), spec, timeout=30)
+    assert result.group_status[1] == "excluded"
+    if result.status == "holds":
+        assert not _sampled_violation(net, ConvexHull(V), spec, seed)
+    else:
+        assert result.status == "violated"
+        _check_counterexample(net, ConvexHull(V), spec, result)
+
+
+def test_branching_proves_what_the_root_cannot():
+    """y0 = relu(x) beats y1 = relu(x) − 0.1 on x ∈ [−1, 1]. Intervals lose the correlation
+    (the margin's interval bound is relu(a) − relu(b) + 0.1 on [a, b]) until nodes are
+    narrower than 0.1; CROWN's backward pass keeps it and proves the root."""
+    net = nn.Sequential(nn.Linear(1, 2), nn.ReLU(), nn.Linear(2, 2)).double().eval()
+    with torch.no_grad():
+        net[0].weight.copy_(torch.tensor([[1.0], [-1.0]]))
+        net[0].bias.zero_()
+        net[2].weight.copy_(torch.tensor([[1.0, 0.0], [1.0, 0.0]]))
+        net[2].bias.copy_(torch.tensor([0.0, -0.1]))
+    hull = ConvexHull(torch.tensor([[-1.0], [1.0]], dtype=torch.float64))
+    spec = ArgmaxSpec([2], [0])
+    root = verify(net, hull, spec, max_nodes=1, method="ibp")
+    assert root.status == "unknown" and root.group_status == ["unknown"]
+    result = verify(net, hull, spec, method="ibp")
+    assert result.status == "holds" and result.nodes > 16
+    assert verify(net, hull, spec, method="crown").nodes == 1
+
+
+def test_violation_found_in_the_middle_of_the_hull():
+    """Margins positive at every vertex and the centroid, negative on a small region found
+    by the gradient attack or by splitting."""
+    net = nn.Sequential(nn.Linear(1, 2), nn.ReLU(), nn.Linear(2, 2)).double().eval()
+    with torch.no_grad():
+        net[0].weight.copy_(torch.tensor([[1.0], [-1.0]]))
+        net[0].bias.copy_(torch.tensor([-0.3, 0.3]))
+        net[2].weight.copy_(torch.tensor([[1.0, 1.0], [0.0, 0.0]]))
+        net[2].bias.copy_(torch.tensor([0.0, -0.05]))
+    # y0 = |x - 0.3| beats y1 = -0.05... always: make it fail near x = 0.3 with y1 = +0.05
+    with torch.no_grad():
+        net[2].bias.copy_(torch.tensor([0.0, 0.05]))
+    hull = ConvexHull(torch.tensor([[-1.0], [1.0]], dtype=torch.float64))
+    result = verify(net, hull, ArgmaxSpec([2], [0]))
+    assert result.status == "violated"
+    _check_counterexample(net, hull, ArgmaxSpec([2], [0]), result)
+    lam = result.counterexample.point
+    assert abs(float(hull.image(lam)) - 0.3) < 0.05
+
+
+def test_budget_gives_unknown_not_holds():
+    net = MixedNet(0)
+    V = hull_vertices(0, 4, (2, 8, 8), spread=3.0)
+    spec = _spec_at_seed(net, V[0], [3, 3])
+    result = verify(net, ConvexHull(V), spec, max_nodes=1, attack_steps=0)
+    assert result.status in ("unknown", "violated")
+    assert result.nodes == 1
+
+
+def test_bad_input_is_named():
+    net = MixedNet(0)
+    V = hull_vertices(0, 2, (2, 8, 8))
+    spec = ArgmaxSpec([3, 3], [0, 0])
+    with pytest.raises(ValueError, match="vertices: expected .* at least two images"):
+        ConvexHull(V[:1])
+    bad = V.clone()
+    bad[1, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="vertices: expected finite"):
+        ConvexHull(bad)
+    with pytest.raises(ValueError, match="input_set: images of shape"):
+        verify(net, ConvexHull(hull_vertices(0, 2, (3, 8, 8))), spec)
+    with pytest.raises(ValueError, match="spec: expected a model with 5 outputs"):
+        verify(net, ConvexHull(V), ArgmaxSpec([3, 2], [0, 0]))
+    with pytest.raises(ValueError, match="model: unsupported operation Tanh"):
+        verify(nn.Sequential(nn.Flatten(), nn.Linear(128, 6), nn.Tanh()), ConvexHull(V), spec)
+    with pytest.raises(ValueError, match="timeout: expected"):
+        verify(net, ConvexHull(V), spec, timeout=0)
+    with pytest.raises(ValueError, match="method: expected"):
+        verify(net, ConvexHull(V), spec, method="milp")

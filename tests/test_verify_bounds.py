@@ -1,0 +1,210 @@
+"""Soundness of the bound methods: sampling, exact MILP optima, and relative tightness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import Bounds, LinearConstraint, milp
+from torch import nn
+
+from kpstudy.verify import Box, ConvexHull, Parallelotope, output_bounds
+from tests.verify_nets import MixedNet, PoolProxy, hull_vertices, mlp
+
+METHODS = ("ibp", "forward", "crown")
+
+
+def _sample_images(input_set, seed):
+    pts = torch.cat([input_set.sample(1000, seed), input_set.sample(500, seed + 1, "vertices")])
+    pts = torch.cat([pts, input_set.sample(500, seed + 2, "edges")])
+    return input_set.image(pts)
+
+
+@pytest.mark.parametrize("n", range(1, 7))
+@pytest.mark.parametrize("set_type", [ConvexHull, Parallelotope])
+def test_bounds_contain_2000_samples_mixed_net(n, set_type):
+    net = MixedNet(seed=n)
+    s = set_type(hull_vertices(n, n, (2, 8, 8)))
+    with torch.no_grad():
+        y = net(_sample_images(s, seed=n))
+    assert len(y) == 2000
+    for method in METHODS:
+        lo, hi = output_bounds(net, s, method)
+        slack = 1e-5 * (1 + y.abs().max())
+        assert (y >= lo - slack).all(), method
+        assert (y <= hi + slack).all(), method
+
+
+def test_bounds_contain_samples_box_and_proxy():
+    net = PoolProxy(seed=3)
+    x0 = torch.randn(1, 10, 10)
+    box = Box(x0 - 0.1, x0 + 0.1)
+    hull = ConvexHull(hull_vertices(4, 3, (1, 10, 10)))
+    for s in (box, hull):
+        with torch.no_grad():
+            y = net(_sample_images(s, seed=5) if s is hull else s.sample(2000, 5))
+        for method in METHODS:
+            lo, hi = output_bounds(net, s, method)
+            assert (y >= lo - 1e-5).all() and (y <= hi + 1e-5).all(), method
+
+
+def _interval(net, lo, hi):
+    """Plain numpy interval arithmetic: pre-activation bounds for the MILP's big-M."""
+    out = []
+    for layer in net:
+        if isinstance(layer, nn.Linear):
+            W, b = layer.weight.detach().numpy(), layer.bias.detach().numpy()
+            c, r = (lo + hi) / 2, (hi - lo) / 2
+            lo, hi = W @ c + b - np.abs(W) @ r, W @ c + b + np.abs(W) @ r
+            out.append((lo.copy(), hi.copy()))
+        else:
+            lo, hi = np.maximum(lo, 0), np.maximum(hi, 0)
+    return out
+
+
+def _milp_extremes(net, vertices):
+    """Exact min and max of every output of a ReLU MLP over the hull (scipy MILP)."""
+    X = vertices.numpy()
+    n = X.shape[0] - 1
+    linears = [m for m in net if isinstance(m, nn.Linear)]
+    pre = _interval(net, X.min(0) - 1.0, X.max(0) + 1.0)
+    # Variables: λ (n), then per layer z (pre-activation), and for hidden layers a, δ.
+    lb, ub, integ = [], [], []
+
+    def add(lo, hi, k):
+        start = len(lb)
+        lb.extend(lo)
+        ub.extend(hi)
+        integ.extend([k] * len(lo))
+        return np.arange(start, len(lb))
+
+    lam = add( [0.0] * n, [1.0] * n, 0)
+    rows, lo_c, hi_c = [], [], []
+
+    def constraint(coef: dict, lo, hi):
+        rows.append(coef)
+        lo_c.append(lo)
+        hi_c.append(hi)
+
+    # x = X0 + D λ enters the first layer directly.
+    prev = None
+    for li, layer in enumerate(linears):
+        W, b = layer.weight.detach().numpy(), layer.bias.detach().numpy()
+        zl, zu = pre[li]
+        z = add(zl - 1e-6, zu + 1e-6, 0)
+        for j in range(W.shape[0]):
+            coef = {z[j]: 1.0}
+            if prev is None:
+                const = W[j] @ X[0] + b[j]
+                for i in range(n):
+                    coef[lam[i]] = -(W[j] @ (X[i + 1] - X[0]))
+            else:
+                const = b[j]
+                for k in range(W.shape[1]):
+                    coef[prev[k]] = coef.get(prev[k], 0.0) - W[j, k]
+            constraint(coef, const, const)
+        if li == len(linears) - 1:
+            out = z
+            break
+        a = add([0.0] * len(z), np.maximum(zu, 0) + 1e-6, 0)
+        dl = add([0.0] * len(z), [1.0] * len(z), 1)
+        for j in range(len(z)):
+            constraint({a[j]: 1.0, z[j]: -1.0}, 0.0, np.inf)  # a ≥ z
+            constraint({a[j]: 1.0, z[j]: -1.0, dl[j]: -zl[j]}, -np.inf, -zl[j])  # a ≤ z − l(1−δ)
+            constraint({a[j]: 1.0, dl[j]: -max(zu[j], 0.0)}, -np.inf, 0.0)  # a ≤ u δ
+        prev = a
+    nv = len(lb)
+    A = np.zeros((len(rows), nv))
+    for r, coef in enumerate(rows):
+        for k, v in coef.items():
+            A[r, k] += v
+    cons = [
+        LinearConstraint(A, lo_c, hi_c),
+        LinearConstraint(np.r_[np.ones(n), np.zeros(nv - n)], -np.inf, 1.0),
+    ]
+    mins, maxs = [], []
+    for j in out:
+        c = np.zeros(nv)
+        c[j] = 1.0
+        for sign, store in ((1.0, mins), (-1.0, maxs)):
+            res = milp(sign * c, constraints=cons, integrality=integ, bounds=Bounds(lb, ub))
+            assert res.success
+            store.append(sign * res.fun)
+    return np.array(mins), np.array(maxs)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bounds_enclose_exact_milp_extremes(seed):
+    net = mlp(seed)
+    n = 1 + seed % 4
+    V = hull_vertices(seed, n, (6,), spread=0.5, dtype=torch.float64)
+    lo_exact, hi_exact = _milp_extremes(net, V)
+    hull = ConvexHull(V)
+    # the exact extremes are attained: sampling gets close to them from inside
+    with torch.no_grad():
+        y = net(hull.image(hull.sample(4000, seed))).numpy()
+    assert (y.min(0) >= lo_exact - 1e-7).all() and (y.max(0) <= hi_exact + 1e-7).all()
+    for method in METHODS:
+        lo, hi = (b.numpy() for b in output_bounds(net, hull, method))
+        assert (lo <= lo_exact + 1e-9).all(), method
+        assert (hi >= hi_exact - 1e-9).all(), method
+
+
+def test_simplex_never_looser_than_parallelotope_and_tighter_on_average():
+    ratios = []
+    for seed in range(8):
+        net = MixedNet(seed)
+        V = hull_vertices(seed, 3, (2, 8, 8))
+        for method in ("forward", "crown"):
+            lo_h, hi_h = output_bounds(net, ConvexHull(V), method)
+            lo_p, hi_p = output_bounds(net, Parallelotope(V), method)
+            assert (lo_h >= lo_p - 1e-5).all() and (hi_h <= hi_p + 1e-5).all()
+            ratios.append(((hi_h - lo_h).mean() / (hi_p - lo_p).mean()).item())
+    assert np.mean(ratios) < 0.9
+
+
+def test_crown_no_wider_than_ibp_and_forward_on_average():
+    widths = {m: [] for m in METHODS}
+    for seed in range(8):
+        net = MixedNet(seed)
+        hull = ConvexHull(hull_vertices(seed, 2, (2, 8, 8)))
+        for m in METHODS:
+            lo, hi = output_bounds(net, hull, m)
+            widths[m].append((hi - lo).mean().item())
+    assert np.mean(widths["crown"]) <= np.mean(widths["forward"]) <= np.mean(widths["ibp"])
+
+
+def test_bounds_are_exact_on_a_linear_network():
+    net = nn.Sequential(nn.Conv2d(2, 3, 3), nn.Flatten(), nn.Linear(3 * 6 * 6, 4)).double().eval()
+    V = hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64)
+    with torch.no_grad():
+        y = net(V)  # a linear map's extremes over a hull are at its vertices
+    for method in ("forward", "crown"):
+        lo, hi = output_bounds(net, ConvexHull(V), method)
+        torch.testing.assert_close(lo, y.min(0).values)
+        torch.testing.assert_close(hi, y.max(0).values)
+
+
+def test_unsupported_layer_is_named():
+    net = nn.Sequential(nn.Conv2d(1, 2, 3), nn.Sigmoid()).eval()
+    with pytest.raises(ValueError, match="model: unsupported operation Sigmoid"):
+        output_bounds(net, ConvexHull(torch.randn(2, 1, 5, 5)))
+
+    class Gelu(nn.Module):
+        def forward(self, x):
+            return torch.nn.functional.gelu(x)
+
+    with pytest.raises(ValueError, match="model: unsupported operation gelu"):
+        output_bounds(Gelu(), ConvexHull(torch.randn(2, 1, 5, 5)))
+
+
+def test_training_mode_batch_norm_is_refused():
+    net = nn.Sequential(nn.Conv2d(1, 2, 3), nn.BatchNorm2d(2))
+    with pytest.raises(ValueError, match="BatchNorm2d needs eval mode"):
+        output_bounds(net, ConvexHull(torch.randn(2, 1, 5, 5)))
+
+
+def test_unknown_method_is_refused():
+    net = mlp(0)
+    with pytest.raises(ValueError, match="method: expected"):
+        output_bounds(net, ConvexHull(torch.randn(2, 6).double()), "deeppoly")

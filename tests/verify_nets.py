@@ -1,0 +1,78 @@
+"""Small random networks and input sets shared by the verifier tests."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from kpstudy.pooling import build_cell_pool
+
+
+class MixedNet(nn.Module):
+    """Every supported operator once: conv, batch norm, ReLU, residual add, average pool
+    (with padding, real pixels only), max pool, slicing, concatenation, transposed conv,
+    flatten, linear. Input ``(B, 2, 8, 8)`` → ``(B, 6)``."""
+
+    def __init__(self, seed: int):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.conv1 = nn.Conv2d(2, 4, 3, padding=1)
+        self.bn = nn.BatchNorm2d(4)
+        self.conv2 = nn.Conv2d(4, 4, 3, padding=1)
+        self.avg = nn.AvgPool2d(3, stride=1, padding=1, count_include_pad=False)
+        self.max = nn.MaxPool2d(2)
+        self.up = nn.ConvTranspose2d(6, 3, 2, stride=2)
+        self.fc = nn.Linear(3 * 8 * 8, 6)
+        with torch.no_grad():
+            self.bn.running_mean.uniform_(-0.5, 0.5)
+            self.bn.running_var.uniform_(0.5, 2.0)
+            self.bn.weight.uniform_(0.5, 1.5)
+            self.bn.bias.uniform_(-0.2, 0.2)
+        self.eval()
+
+    def forward(self, x):
+        h = torch.relu(self.bn(self.conv1(x)))
+        h = torch.relu(self.conv2(h) + h)
+        a = self.avg(h)[:, :2, ::2, ::2]
+        z = torch.cat([a, self.max(h)], 1)
+        z = torch.relu(self.up(z))
+        return self.fc(z.flatten(1))
+
+
+class PoolProxy(nn.Module):
+    """A tiny keypoint proxy: conv backbone → two heatmap channels → per-channel cell
+    pooling → flatten → concatenation. Input ``(B, 1, 10, 10)``."""
+
+    def __init__(self, seed: int, centers=((3, 4), (6, 2)), dvs=((1, 1), (1, 2))):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.backbone = nn.Sequential(
+            nn.Conv2d(1, 4, 3, padding=1), nn.ReLU(), nn.Conv2d(4, 2, 3, padding=1)
+        )
+        made = [build_cell_pool(c, d, (10, 10)) for c, d in zip(centers, dvs)]
+        self.pools = nn.ModuleList([p for p, _ in made])
+        self.targets = [t for _, t in made]
+        self.group_sizes = [p.n_v * p.n_h for p in self.pools]
+        self.eval()
+
+    def forward(self, x):
+        h = self.backbone(x)
+        return torch.cat([p(h[:, k : k + 1]).flatten(1) for k, p in enumerate(self.pools)], 1)
+
+
+def mlp(seed: int, sizes=(6, 5, 5, 3)) -> nn.Sequential:
+    """A ReLU MLP on ``(B, sizes[0])``, float64."""
+    torch.manual_seed(seed)
+    layers = []
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers[:-1]).double().eval()
+
+
+def hull_vertices(seed: int, n: int, shape, spread: float = 0.3, dtype=torch.float32):
+    """``n + 1`` images around a random seed image, shape ``(n+1, *shape)``."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.randn(1, *shape, generator=g, dtype=dtype)
+    return x0 + spread * torch.cat(
+        [torch.zeros(1, *shape, dtype=dtype), torch.randn(n, *shape, generator=g, dtype=dtype)]
+    )
