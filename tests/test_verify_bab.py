@@ -116,7 +116,7 @@ def test_budget_gives_unknown_not_holds():
     spec = _spec_at_seed(net, V[0], [3, 3])
     result = verify(net, ConvexHull(V), spec, max_nodes=1, attack_steps=0)
     assert result.status in ("unknown", "violated")
-    assert result.nodes == 1
+    assert result.nodes <= 1
 
 
 def test_bad_input_is_named():

@@ -31,7 +31,7 @@ def verify(
     max_nodes: int | None = None,
     batch: int | None = None,
     tol: float = 1e-5,
-    attack_steps: int = 8,
+    attack_steps: int = 3,
     stop_on_violation: bool = True,
     memory: int = 2**25,
 ) -> Result:
@@ -57,7 +57,7 @@ def verify(
         Margin lower bounds must exceed this to close a group (those in ``(0, tol]`` are
         recomputed in float64 when the model is not float64).
     attack_steps : int
-        Projected-gradient steps per open node (four times as many at the root).
+        Projected-gradient steps per open node (eight times as many at the root).
     stop_on_violation : bool
         Stop at the first counterexample (other open groups stay ``'unknown'``).
     memory : int
@@ -78,49 +78,52 @@ def verify(
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
     search = _Search(model, graph, input_set, spec, method, tol, memory)
-    if batch is None:
-        per_node = 4 * sum(_numel(n.shape) for n in graph.nodes[:2]) + max(
-            _numel(n.shape) for n in graph.nodes
-        )
+    if batch is None:  # coefficient stacks (centre and radius) of the largest value
         q = input_set.n + 1 if input_set.domain != "box" else 1
-        batch = max(1, min(64, memory // (4 * q * per_node)))
+        biggest = max(_numel(n.shape) for n in graph.nodes)
+        batch = max(1, min(64, memory // (2 * q * biggest)))
     G = spec.n_groups
     open_groups = torch.zeros(G, dtype=torch.bool)
     open_groups[spec.active_groups] = True
     violated = torch.zeros(G, dtype=torch.bool)
     counterexample = None
-    queue = [(input_set.root(), open_groups[None].clone())]
+    queue = [(input_set.root(), open_groups[None].clone(), 0)]
     nodes_done, depth, root_margin = 0, 0, None
     timed_out = False
+
+    def record(found):
+        nonlocal counterexample
+        for g, cex in found.items():
+            violated[g] = True
+            counterexample = counterexample or cex
+
     with torch.no_grad():
         while queue:
             if time.perf_counter() - start > timeout or (max_nodes and nodes_done >= max_nodes):
                 timed_out = True
                 break
-            nodes, mask = _take(queue, batch)
-            mask = mask & ~violated  # a refuted group needs no proof
-            margin, proved = search.group_margins(nodes, mask)  # (B, G)
-            if root_margin is None:
-                root_margin = margin[0].clone()
-            nodes_done += len(nodes)
-            mask = mask & ~proved
-            steps = attack_steps * (4 if depth == 0 else 1)
-            found = search.attack(nodes, mask, steps)
-            for g, cex in found.items():
-                if not violated[g]:
-                    violated[g] = True
-                    counterexample = counterexample or cex
+            nodes, mask, level = _take(queue, batch)
+            depth = max(depth, level)
+            # Cheap falsification first (node corners and centroid), then bounds, then
+            # gradient descent where the bounds fail.
+            record(search.probe(nodes, mask & ~violated))
             mask = mask & ~violated
-            if counterexample is not None and stop_on_violation:
-                queue = [(nodes[mask.any(1)], mask[mask.any(1)])] + queue
-                break
+            if counterexample is None or not stop_on_violation:
+                margin, proved = search.group_margins(nodes, mask)  # (B, G)
+                if root_margin is None:
+                    root_margin = margin[0].clone()
+                nodes_done += len(nodes)
+                mask = mask & ~proved
+                record(search.descend(nodes, mask, attack_steps * (8 if level == 0 else 1)))
+                mask = mask & ~violated
             keep = mask.any(1)
+            if counterexample is not None and stop_on_violation:
+                queue.insert(0, (nodes[keep], mask[keep], level))
+                break
             if keep.any():
-                children = input_set.split(nodes[keep])
-                queue.append((children, mask[keep].repeat(2, 1)))
-                depth += 1
+                queue.append((input_set.split(nodes[keep]), mask[keep].repeat(2, 1), level + 1))
     still_open = torch.zeros(G, dtype=torch.bool)
-    for _, m in queue:
+    for _, m, _ in queue:
         still_open |= m.any(0)
     group_status = []
     for g in range(G):
@@ -174,18 +177,20 @@ def _numel(shape) -> int:
 
 
 def _take(queue: list, batch: int):
-    """Pop up to ``batch`` nodes from the front of the queue (breadth first)."""
-    nodes, masks, count = [], [], 0
+    """Pop up to ``batch`` nodes from the front of the queue (breadth first); their
+    masks and the shallowest level among them."""
+    nodes, masks, levels, count = [], [], [], 0
     while queue and count < batch:
-        n, m = queue.pop(0)
+        n, m, level = queue.pop(0)
         room = batch - count
         if len(n) > room:
-            queue.insert(0, (n[room:], m[room:]))
+            queue.insert(0, (n[room:], m[room:], level))
             n, m = n[:room], m[:room]
         nodes.append(n)
         masks.append(m)
+        levels.append(level)
         count += len(n)
-    return torch.cat(nodes), torch.cat(masks)
+    return torch.cat(nodes), torch.cat(masks), min(levels)
 
 
 class _Search:
@@ -236,9 +241,8 @@ class _Search:
         return out
 
     # -- attack ------------------------------------------------------------------------
-    def attack(self, nodes, mask, steps: int) -> dict[int, Counterexample]:
-        """Counterexamples for open groups: node corners and centroid, then projected
-        gradient descent on the worst open margin. Returns re-checked ones by group."""
+    def probe(self, nodes, mask) -> dict[int, Counterexample]:
+        """Counterexamples for open groups at each node's corners and centroid."""
         open_nodes = mask.any(1)
         if not open_nodes.any():
             return {}
@@ -246,11 +250,16 @@ class _Search:
         points = self.set.node_points(nodes)  # (B, P, …)
         B, P = points.shape[:2]
         flat = points.reshape(B * P, *points.shape[2:])
-        found = self._recheck(flat, mask.repeat_interleave(P, 0))
-        if found or steps == 0:
-            return found
-        best = self._descend(nodes, mask, steps)
-        return self._recheck(best, mask)
+        return self._recheck(flat, mask.repeat_interleave(P, 0))
+
+    def descend(self, nodes, mask, steps: int) -> dict[int, Counterexample]:
+        """Counterexamples for open groups by projected gradient descent on each open
+        node's worst margin (re-checked)."""
+        open_nodes = mask.any(1)
+        if not open_nodes.any() or steps == 0:
+            return {}
+        nodes, mask = nodes[open_nodes], mask[open_nodes]
+        return self._recheck(self._descend(nodes, mask, steps), mask)
 
     def _descend(self, nodes, mask, steps):
         """Projected gradient descent on each node's worst open margin; returns points."""
