@@ -139,3 +139,18 @@ def test_bad_input_is_named():
         verify(net, ConvexHull(V), spec, timeout=0)
     with pytest.raises(ValueError, match="method: expected"):
         verify(net, ConvexHull(V), spec, method="milp")
+
+
+def test_close_margins_are_proved_in_float64_and_ties_are_violations():
+    net = nn.Sequential(nn.Linear(1, 2)).eval()
+    hull = ConvexHull(torch.tensor([[-1.0], [1.0]]))
+    with torch.no_grad():
+        net[0].weight.copy_(torch.tensor([[1e-7], [0.0]]))
+        net[0].bias.copy_(torch.tensor([2e-6, 0.0]))  # margin in [1.9e-6, 2.1e-6] < tol
+    result = verify(net, hull, ArgmaxSpec([2], [0]))
+    assert result.status == "holds" and result.stats["float64_rechecks"] >= 1
+    with torch.no_grad():
+        net[0].weight.zero_()
+        net[0].bias.zero_()  # a tie everywhere
+    result = verify(net, hull, ArgmaxSpec([2], [0]))
+    assert result.status == "violated" and result.counterexample.margin == 0.0

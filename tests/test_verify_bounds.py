@@ -78,7 +78,7 @@ def _milp_extremes(net, vertices):
         integ.extend([k] * len(lo))
         return np.arange(start, len(lb))
 
-    lam = add( [0.0] * n, [1.0] * n, 0)
+    lam = add([0.0] * n, [1.0] * n, 0)
     rows, lo_c, hi_c = [], [], []
 
     def constraint(coef: dict, lo, hi):

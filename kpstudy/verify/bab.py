@@ -54,8 +54,9 @@ def verify(
     batch : int, optional
         Nodes bounded together (default: as many as fit in ``memory`` elements).
     tol : float
-        Margin lower bounds must exceed this to close a group (those in ``(0, tol]`` are
-        recomputed in float64 when the model is not float64).
+        Margin lower bounds must exceed ``tol · (1 + max |y(X0)|)`` to close a group;
+        those between zero and that are recomputed in float64 (for a float64 model,
+        above zero suffices).
     attack_steps : int
         Projected-gradient steps per open node (eight times as many at the root).
     stop_on_violation : bool
@@ -201,6 +202,9 @@ class _Search:
         self.method, self.tol, self.memory = method, tol, memory
         self.graph64 = None
         self.rechecks = 0
+        with torch.no_grad():  # float32 rounding scales with the outputs' magnitude
+            y0 = graph.forward(example_input(input_set).to(graph.dtype))
+        self.tol_abs = tol * (1.0 + float(y0.abs().max()))
 
     def group_margins(self, nodes, mask) -> tuple[torch.Tensor, torch.Tensor]:
         """Lower bounds ``(B, G)`` of each open group's smallest margin (+inf if closed
@@ -220,7 +224,7 @@ class _Search:
         margin = torch.where(mask, spec.group_min(lower), torch.inf)
         if self.graph.dtype == torch.float64:
             return margin, margin > 0
-        proved = margin > self.tol
+        proved = margin > self.tol_abs
         close = (margin > 0) & ~proved
         if close.any():
             proved |= close & self._float64_proves(nodes, close)

@@ -41,60 +41,46 @@ class Op:
         return self
 
 
-class Conv(Op):
-    def __init__(self, m: nn.Conv2d):
-        if m.padding_mode != "zeros":
-            raise ValueError(f"model: Conv2d padding_mode {m.padding_mode!r} is not supported")
+class _Weighted(Op):
+    """A module ``m`` whose homogeneous part is ``_map(x, m.weight)`` (no bias)."""
+
+    def __init__(self, m: nn.Module):
+        if getattr(m, "padding_mode", "zeros") != "zeros":
+            raise ValueError(
+                f"model: {type(m).__name__} padding_mode {m.padding_mode!r} is not supported"
+            )
         self.m = m
+
+    def _map(self, x, w):
+        raise NotImplementedError
 
     def forward(self, x):
         return self.m(x)
 
-    def _conv(self, x, w):
+    def linear(self, x):
+        return self._map(x, self.m.weight)
+
+    def abs_linear(self, x):
+        return self._map(x, self.m.weight.abs())
+
+
+class Conv(_Weighted):
+    def _map(self, x, w):
         m = self.m
         return F.conv2d(x, w, None, m.stride, m.padding, m.dilation, m.groups)
 
-    def linear(self, x):
-        return self._conv(x, self.m.weight)
 
-    def abs_linear(self, x):
-        return self._conv(x, self.m.weight.abs())
-
-
-class ConvTranspose(Op):
-    def __init__(self, m: nn.ConvTranspose2d):
-        if m.padding_mode != "zeros":
-            raise ValueError("model: ConvTranspose2d padding_mode must be 'zeros'")
-        self.m = m
-
-    def forward(self, x):
-        return self.m(x)
-
-    def _conv(self, x, w):
+class ConvTranspose(_Weighted):
+    def _map(self, x, w):
         m = self.m
         return F.conv_transpose2d(
             x, w, None, m.stride, m.padding, m.output_padding, m.groups, m.dilation
         )
 
-    def linear(self, x):
-        return self._conv(x, self.m.weight)
 
-    def abs_linear(self, x):
-        return self._conv(x, self.m.weight.abs())
-
-
-class Dense(Op):
-    def __init__(self, m: nn.Linear):
-        self.m = m
-
-    def forward(self, x):
-        return self.m(x)
-
-    def linear(self, x):
-        return F.linear(x, self.m.weight)
-
-    def abs_linear(self, x):
-        return F.linear(x, self.m.weight.abs())
+class Dense(_Weighted):
+    def _map(self, x, w):
+        return F.linear(x, w)
 
 
 class BatchNorm(Op):
