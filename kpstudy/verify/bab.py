@@ -12,6 +12,7 @@ the two children exactly covering their parent.
 from __future__ import annotations
 
 import copy
+import math
 import time
 
 import torch
@@ -19,6 +20,7 @@ import torch
 from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
 from kpstudy.verify.graph import trace
 from kpstudy.verify.result import Counterexample, Result
+from kpstudy.verify.spec import ArgmaxSpec
 
 
 def verify(
@@ -76,12 +78,14 @@ def verify(
     """
     start = time.perf_counter()
     method = _check(method, timeout, max_nodes, batch, tol)
+    if not isinstance(spec, ArgmaxSpec):
+        raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
     search = _Search(model, graph, input_set, spec, method, tol, memory)
     if batch is None:  # coefficient stacks (centre and radius) of the largest value
         q = input_set.n + 1 if input_set.domain != "box" else 1
-        biggest = max(_numel(n.shape) for n in graph.nodes)
+        biggest = max(math.prod(n.shape) for n in graph.nodes)
         batch = max(1, min(64, memory // (2 * q * biggest)))
     G = spec.n_groups
     open_groups = torch.zeros(G, dtype=torch.bool)
@@ -168,13 +172,6 @@ def _check(method, timeout, max_nodes, batch, tol) -> str:
     if not tol >= 0:
         raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
     return method
-
-
-def _numel(shape) -> int:
-    n = 1
-    for s in shape:
-        n *= s
-    return n
 
 
 def _take(queue: list, batch: int):

@@ -29,6 +29,8 @@ margin above a tolerance or recomputes a node in float64 before it says ``holds`
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from kpstudy.verify import ops
@@ -204,16 +206,9 @@ def row_bounds(
 
 
 def _chunks(R: int, region: Region, graph: Graph, memory: int):
-    biggest = max(_numel(n.shape) for n in graph.nodes)
+    biggest = max(math.prod(n.shape) for n in graph.nodes)
     step = max(1, memory // (region.batch * biggest))
     return [slice(a, min(a + step, R)) for a in range(0, R, step)]
-
-
-def _numel(shape) -> int:
-    n = 1
-    for s in shape:
-        n *= s
-    return n
 
 
 def _backward(graph: Graph, region: Region, state: _State, pos, neg) -> torch.Tensor:
@@ -222,7 +217,7 @@ def _backward(graph: Graph, region: Region, state: _State, pos, neg) -> torch.Te
     B, r = region.batch, len(pos)
     dtype = region.mid.dtype
     out = graph.nodes[-1]
-    seed = torch.zeros(B, r, _numel(out.shape), dtype=dtype)
+    seed = torch.zeros(B, r, math.prod(out.shape), dtype=dtype)
     rows = torch.arange(r)
     seed[:, rows[pos >= 0], pos[pos >= 0]] = 1.0
     seed[:, rows[neg >= 0], neg[neg >= 0]] -= 1.0

@@ -23,11 +23,8 @@ ModelVerification.jl, …) can run the very instance this package checks:
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import os
 import re
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -38,6 +35,7 @@ from onnx import numpy_helper
 from onnx.reference import ReferenceEvaluator
 from torch import nn
 
+from kpstudy.io import atomic_path
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.spec import ArgmaxSpec
 
@@ -122,7 +120,7 @@ def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *,
 
     directory.mkdir(parents=True, exist_ok=True)
     onnx_path, vnnlib_path = directory / "model.onnx", directory / "spec.vnnlib"
-    with _atomic(onnx_path) as tmp_onnx, _atomic(vnnlib_path) as tmp_vnnlib:
+    with atomic_path(onnx_path) as tmp_onnx, atomic_path(vnnlib_path) as tmp_vnnlib:
         _export_onnx(wrapper, example, name, tmp_onnx, opset)
         Path(tmp_vnnlib).write_text(text)
     return {
@@ -276,15 +274,3 @@ def _fold_constants(path: str) -> None:
         numpy_helper.from_array(np.asarray(v), k) for k, v in values.items() if k in used
     )
     onnx.save(model, path)
-
-
-@contextlib.contextmanager
-def _atomic(path: Path):
-    """A temporary path beside ``path``, moved onto it on success and removed on failure."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)

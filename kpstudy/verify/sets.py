@@ -20,10 +20,24 @@ import math
 import torch
 
 
-class _AffineSet:
-    """``{X0 + D λ : λ ∈ domain}`` for ``vertices = [X0, X1, …, Xn]``, shape ``(n+1, *S)``."""
+class ConvexHull:
+    """The exact convex hull of ``n + 1`` images.
 
-    domain: str
+    ``{X0 + Σ_i λ_i (X_i − X0) : λ ≥ 0, Σ λ ≤ 1}``.
+
+    Parameters
+    ----------
+    vertices : Tensor, shape (n+1, *S)
+        ``X0`` (the seed image) first, then the ``n`` perturbed images (preprocessed, as
+        the model takes them; ``S`` is e.g. ``(3, 64, 64)``).
+
+    Examples
+    --------
+    >>> hull = ConvexHull(torch.stack([x0, x1, x2]))  # doctest: +SKIP
+    >>> hull.image(torch.tensor([0.5, 0.25]))          # 0.25 X0 + 0.5 X1 + 0.25 X2
+    """
+
+    domain = "simplex"
 
     def __init__(self, vertices) -> None:
         if not isinstance(vertices, torch.Tensor):
@@ -60,10 +74,6 @@ class _AffineSet:
         out = self.origin.reshape(1, -1) + flat
         return out.reshape(*lam.shape[:-1], *self.shape).to(self.dtype)
 
-    def contains_lambda(self, lam, tol: float = 0.0) -> torch.Tensor:
-        """Whether each ``lam (..., n)`` lies in the parameter domain (to ``tol``)."""
-        raise NotImplementedError
-
     def contains_point(self, lam, tol: float = 0.0) -> torch.Tensor:
         """Points of a hull are λ: :meth:`contains_lambda`."""
         return self.contains_lambda(lam, tol)
@@ -99,37 +109,8 @@ class _AffineSet:
             return corners[i] + s * (corners[j] - corners[i])
         return self._uniform(count, g)
 
-    # -- branch and bound ---------------------------------------------------------------
-    def root(self) -> torch.Tensor:
-        """The whole set as one node (batch of one)."""
-        raise NotImplementedError
-
-    def node_inputs(self, nodes: torch.Tensor, dtype) -> tuple[torch.Tensor, str]:
-        """Affine inputs of ``B`` nodes: coefficients ``(B, p+1, *S)`` = ``[c, G_1 … G_p]``
-        (``x = c + Σ θ_i G_i``) and the domain of ``θ`` (``'simplex'`` or ``'cube'``)."""
-        raise NotImplementedError
-
-
-class ConvexHull(_AffineSet):
-    """The exact convex hull of ``n + 1`` images.
-
-    ``{X0 + Σ_i λ_i (X_i − X0) : λ ≥ 0, Σ λ ≤ 1}``.
-
-    Parameters
-    ----------
-    vertices : Tensor, shape (n+1, *S)
-        ``X0`` (the seed image) first, then the ``n`` perturbed images (preprocessed, as
-        the model takes them; ``S`` is e.g. ``(3, 64, 64)``).
-
-    Examples
-    --------
-    >>> hull = ConvexHull(torch.stack([x0, x1, x2]))  # doctest: +SKIP
-    >>> hull.image(torch.tensor([0.5, 0.25]))          # 0.25 X0 + 0.5 X1 + 0.25 X2
-    """
-
-    domain = "simplex"
-
     def contains_lambda(self, lam, tol: float = 0.0) -> torch.Tensor:
+        """Whether each ``lam (..., n)`` lies in the parameter domain (to ``tol``)."""
         lam = torch.as_tensor(lam, dtype=torch.float64)
         return (lam >= -tol).all(-1) & (lam.sum(-1) <= 1.0 + tol)
 
@@ -145,6 +126,8 @@ class ConvexHull(_AffineSet):
         return self._corners()[None]
 
     def node_inputs(self, nodes, dtype):
+        """Affine inputs of ``B`` nodes: coefficients ``(B, p+1, *S)`` = ``[c, G_1 … G_p]``
+        (``x = c + Σ θ_i G_i``) and the domain of ``θ`` (``'simplex'`` or ``'cube'``)."""
         c = nodes[:, 0]  # (B, n)
         coeff = torch.cat([c[:, None], nodes[:, 1:] - c[:, None]], 1)  # (B, n+1, n)
         return self._lift(coeff, dtype), "simplex"
