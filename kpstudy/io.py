@@ -30,8 +30,13 @@ def atomic_path(path):
 
 def write_text_atomic(path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (creating parent folders)."""
-    with atomic_path(path) as tmp, open(tmp, "w") as f:
-        f.write(text)
+    return write_bytes_atomic(path, text.encode())
+
+
+def write_bytes_atomic(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (creating parent folders)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
         f.flush()
         os.fsync(f.fileno())
     return Path(path)
@@ -55,3 +60,50 @@ def _markdown(df: pd.DataFrame) -> str:
     rule = "|" + "|".join("---" for _ in df.columns) + "|"
     rows = ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
     return "\n".join([head, rule, *rows])
+
+
+def check_output_dir(out, overwrite: bool, name: str = "out") -> Path:
+    """Refuse an output folder that is not empty (unless ``overwrite``) or not writable.
+
+    Raises ``FileExistsError`` / ``PermissionError`` / ``NotADirectoryError`` naming
+    ``name`` before anything is written.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{name}: {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{name}: directory {out} is not empty; pass --overwrite to replace")
+    existing = out
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"{name}: cannot write into {existing}")
+    return out
+
+
+@contextlib.contextmanager
+def staged_directory(out, config: dict):
+    """Build a folder beside ``out`` and move it onto ``out`` when the block succeeds.
+
+    Yields ``(staging, resumed)``. The staging folder ``.<name>.partial`` keeps
+    ``config`` in ``.config.json``: a later run with the same config resumes in it (the
+    caller skips what is already there), another config starts afresh. On failure the
+    staging folder stays for a resume and ``out`` is untouched.
+    """
+    import json
+    import shutil
+
+    out = Path(out)
+    staging = out.parent / f".{out.name}.partial"
+    stamp = staging / ".config.json"
+    text = json.dumps(config, sort_keys=True)
+    resumed = stamp.exists() and stamp.read_text() == text
+    if staging.exists() and not resumed:
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(stamp, text)
+    yield staging, resumed
+    stamp.unlink()
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(staging, out)

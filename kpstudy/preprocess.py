@@ -1,0 +1,48 @@
+"""Preprocessing F0: an image → the network's input, and pixels ↔ input pixels.
+
+The whole image is resized to the model input (64×64 for the CNN, 256×256 for
+ResNet-18) by pixel-area averaging, a linear map: the resized convex hull of images
+is the convex hull of the resized images. Values stay in [0, 255] until
+:func:`normalise`. A resize by factors ``(sx, sy)`` maps pixel coordinates as
+``u' = (u + 0.5)·sx − 0.5`` (DESIGN.md §3).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def _size(size) -> tuple[int, int]:
+    width, height = (int(s) for s in (size, size)) if np.isscalar(size) else (int(s) for s in size)
+    if width < 1 or height < 1:
+        raise ValueError(f"size: expected a positive input size, got {size}")
+    return width, height
+
+
+def resize_to_input(image: np.ndarray, size) -> np.ndarray:
+    """Resize an image (H, W, 3), uint8 or float in [0, 255], to (h, w, 3) float32.
+
+    ``size`` is ``s`` (square) or ``(w, h)``. Area averaging (``cv2.INTER_AREA``).
+    """
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image: expected an (H, W, 3) image, got shape {image.shape}")
+    width, height = _size(size)
+    return cv2.resize(image.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+
+
+def scale_factors(image_size, input_size) -> tuple[float, float]:
+    """Resize factors ``(sx, sy)`` from an image of ``(W, H)`` to an input of ``(w, h)``."""
+    (W, H), (w, h) = _size(image_size), _size(input_size)
+    return w / W, h / H
+
+
+def to_input_pixels(uv: np.ndarray, factors) -> np.ndarray:
+    """Image pixel coordinates (..., 2) → input pixel coordinates (..., 2)."""
+    return (np.asarray(uv, float) + 0.5) * np.asarray(factors, float) - 0.5
+
+
+def normalise(images: np.ndarray) -> np.ndarray:
+    """[0, 255] → [0, 1] (the network's input scale)."""
+    return np.asarray(images, np.float32) / 255.0
