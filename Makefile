@@ -4,8 +4,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PROFILE ?= quick
-# System libraries for headless rendering (EGL and OSMesa back ends of the renderer).
-SYSTEM_PACKAGES := libegl1 libgl1 libgles2 libosmesa6 libgl1-mesa-dri
+# System libraries of the headless renderer: EGL (glvnd + Mesa) and Mesa's llvmpipe software rasteriser.
+SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1 libgbm1 libgl1-mesa-dri
 STAMP := $(VENV)/.installed
 
 .PHONY: setup system venv test test-fast lint reproduce bench clean

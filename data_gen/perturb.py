@@ -6,9 +6,9 @@ test split:
 
 - ``objects``: per seed image ``per_seed`` (20) images, each with one occluder patch
   (rendered top-down at the image's ground scale under its light, with its cast
-  shadow) at a random place; the patch's longer side is at most 150 px at 1920 px
-  image width (scaled with the width). ``overlapping`` iff the patch's alpha meets
-  the airplane mask. Stored as PNG at the render's resolution.
+  shadow) at a random place, drawn among the occluders whose patch side at the
+  image's true ground scale is 8–150 px at 1920 px image width (scaled with the
+  width). ``overlapping`` iff the patch's alpha meets the airplane mask. Stored as PNG at the render's resolution.
 - ``blocks``: in model-input space (``input_size``), per seed image 4 images with a
   3×3 block of uniform random values in [0, 255] away from the airplane
   (non-overlapping) and 4 with the block centred on a random visible keypoint
@@ -43,7 +43,8 @@ from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
 
 KINDS = ("objects", "blocks", "brightness", "contrast")
 DEFAULT_LEVELS = {"brightness": (1.0, 2.0), "contrast": (5e-4, 5e-3, 1e-2)}
-PATCH_PX_AT_1920 = 150
+PATCH_PX_AT_1920 = 150  # the paper's largest patch side at 1920 px image width
+MIN_PATCH_PX_AT_1920 = 8  # smaller occluders (a person far below) would barely change a pixel
 BLOCK = 3
 
 
@@ -87,6 +88,7 @@ def _objects(
         mask = cv2.imread(str(data_dir / info["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
         H, W = mask.shape
         cap = max(int(round(PATCH_PX_AT_1920 * W / 1920)), 4)
+        least = max(int(round(MIN_PATCH_PX_AT_1920 * W / 1920)), 3)
         light = patch_light(
             SceneParams(**_tuples(info["scene"])).light(), np.asarray(info["pose"]["R"])
         )
@@ -96,15 +98,17 @@ def _objects(
                 occluder = catalog[rng.integers(len(catalog))]
                 centre = rng.uniform((0, 0), (W - 1, H - 1))
                 scale = _ground_scale(*centre, info, ground_z)
-                if max(occluder.mesh.extents[:2]) * scale > cap:
+                if not least <= max(occluder.mesh.extents[:2]) * scale <= cap:
                     continue
                 yaw = float(rng.uniform(0, 360))
                 patch = renderer.render(occluder.name, occluder.mesh, scale, light, yaw)
                 h, w = patch.shape[:2]
-                if 0 < max(h, w) <= cap:
+                if least <= max(h, w) <= cap:
                     break
             else:
-                raise RuntimeError(f"objects: no occluder fits in {cap} px on image {image_id}")
+                raise RuntimeError(
+                    f"objects: no occluder spans {least}–{cap} px on image {image_id}"
+                )
             x = int(np.clip(round(centre[0] - w / 2), 0, W - w))
             y = int(np.clip(round(centre[1] - h / 2), 0, H - h))
             perturbed, alpha = paste(picture, patch, (x, y))

@@ -352,8 +352,10 @@ def keypoint_visibility(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (23, 2) and COCO visibility flags (23,) of keypoints (23, 3) in a frame.
 
-    2 = visible: inside the image, on an airplane pixel whose depth is no more than
-    ``tol`` metres in front of the keypoint; 1 = inside but hidden; 0 = outside.
+    A z-buffer test at the keypoint's pixel: 2 = visible (inside the image and nothing
+    drawn there is more than ``tol`` metres in front of the keypoint: the pixel shows
+    the keypoint's own surface, or, at a thin edge that covers less than the pixel's
+    centre, the ground behind it); 1 = inside but hidden; 0 = outside.
     """
     x = keypoints @ R.T + t
     uv = x[:, :2] / x[:, 2:] @ K[:2, :2].T + K[:2, 2]
@@ -362,6 +364,6 @@ def keypoint_visibility(
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     flags = np.zeros(len(keypoints), int)
     c, r = col[inside], row[inside]
-    seen = (frame.ids[r, c] == AIRPLANE_ID) & (frame.depth[r, c] >= x[inside, 2] - tol)
+    seen = frame.depth[r, c] >= x[inside, 2] - tol
     flags[inside] = np.where(seen, 2, 1)
     return uv, flags

@@ -1,0 +1,207 @@
+"""The rendered dataset: geometry of the annotations, masks, COCO format, determinism, CLI errors."""
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from pycocotools.coco import COCO
+
+from data_gen import dataset as dataset_module
+from data_gen.dataset import generate_dataset, load_coco, parse_size, read_image, split_of
+from data_gen.keypoints import KEYPOINT_NAMES
+from kpstudy.geometry import project
+
+SIZE = "240x150"
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return generate_dataset(tmp_path_factory.mktemp("ds") / "data", 8, SIZE, seed=3, progress=False)
+
+
+def _files(folder):
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*.png"))}
+
+
+def _annotations(folder):
+    coco = load_coco(folder)
+    coco["info"].pop("date_created")
+    return coco
+
+
+def test_keypoints_reproject_and_visible_ones_lie_on_the_mask(small):
+    coco = load_coco(small)
+    P = np.asarray(coco["categories"][0]["keypoints_3d"])
+    assert P.shape == (23, 3) and coco["categories"][0]["keypoints"] == list(KEYPOINT_NAMES)
+    visible_total = 0
+    for image, ann in zip(coco["images"], coco["annotations"]):
+        K, R, t = np.asarray(image["K"]), np.asarray(ann["pose"]["R"]), np.asarray(ann["pose"]["t"])
+        kp = np.reshape(ann["keypoints"], (-1, 3))
+        np.testing.assert_allclose(kp[:, :2], project(P, R, t, K), atol=1e-3)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+        mask = cv2.imread(str(small / image["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
+        cols, rows = np.rint(kp[:, 0]).astype(int), np.rint(kp[:, 1]).astype(int)
+        assert np.all(
+            (kp[:, 2] >= 1) & (cols >= 0) & (cols < image["width"])
+        )  # whole airplane in view
+        # Visible keypoints lie on the mask, or within a pixel of it at thin edges (wing and
+        # fin tips narrower than a pixel's centre spacing).
+        visible = kp[:, 2] == 2
+        near_mask = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        assert np.all(near_mask[rows[visible], cols[visible]])
+        crown = [KEYPOINT_NAMES.index(n) for n in ("cockpit", "fuselage_front", "fuselage_mid")]
+        assert np.all(kp[crown, 2] == 2) and np.all(mask[rows[crown], cols[crown]])
+        visible_total += visible.sum()
+        # The airplane spans 30–70 % of the frame (larger of width and height fractions).
+        ys, xs = np.nonzero(mask)
+        span = max((np.ptp(xs) + 1) / image["width"], (np.ptp(ys) + 1) / image["height"])
+        assert 0.25 <= span <= 0.72
+    assert visible_total >= 0.8 * 23 * len(coco["images"])  # seen from above, most are visible
+
+
+def test_depth_matches_pose_and_intrinsics(small):
+    coco = load_coco(small)
+    image, ann = coco["images"][0], coco["annotations"][0]
+    depth = (
+        cv2.imread(str(small / image["depth_file"]), cv2.IMREAD_UNCHANGED)
+        * coco["info"]["depth_scale_m"]
+    )
+    R, t = np.asarray(ann["pose"]["R"]), np.asarray(ann["pose"]["t"])
+    P = np.asarray(coco["categories"][0]["keypoints_3d"])
+    kp = np.reshape(ann["keypoints"], (-1, 3))
+    z = (P @ R.T + t)[:, 2]
+    mask = cv2.imread(str(small / image["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
+    rows, cols = np.rint(kp[:, 1]).astype(int), np.rint(kp[:, 0]).astype(int)
+    on_airplane = (kp[:, 2] == 2) & mask[rows, cols]
+    assert on_airplane.sum() >= 8
+    # Within a pixel's footprint on sloped surfaces (about 0.4 m per pixel here).
+    np.testing.assert_allclose(depth[rows, cols][on_airplane], z[on_airplane], atol=0.5)
+    hidden = kp[:, 2] == 1
+    assert np.all(depth[rows, cols][hidden] < z[hidden] - 0.3)
+
+
+def test_coco_loads_in_pycocotools(small):
+    coco = COCO(str(small / "annotations.json"))
+    ids = coco.getImgIds()
+    assert len(ids) == 8 and len(coco.getAnnIds(imgIds=ids)) == 8
+    ann = coco.loadAnns(coco.getAnnIds(imgIds=ids[0]))[0]
+    mask = cv2.imread(str(small / coco.loadImgs(ids[0])[0]["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
+    assert np.array_equal(coco.annToMask(ann).astype(bool), mask)
+    assert ann["num_keypoints"] == sum(np.reshape(ann["keypoints"], (-1, 3))[:, 2] > 0)
+    data = load_coco(small)
+    assert {im["split"] for im in data["images"]} <= {"train", "val", "test"}
+    assert sorted(sum(data["splits"].values(), [])) == list(range(8))
+
+
+def test_splits_cover_every_image_once():
+    names = split_of(1000, seed=5)
+    assert names.count("train") == 800 and names.count("val") == 100 and names.count("test") == 100
+    assert split_of(1000, seed=5) == names and split_of(1000, seed=6) != names
+
+
+def test_same_seed_same_bytes_any_workers_other_seed_other_images(small, tmp_path):
+    again = generate_dataset(tmp_path / "again", 8, SIZE, seed=3, workers=2, progress=False)
+    assert _files(again) == _files(small)
+    assert _annotations(again) == _annotations(small)
+    other = generate_dataset(tmp_path / "other", 2, SIZE, seed=4, progress=False)
+    first = read_image(other / "images/000000.png")
+    assert not np.array_equal(first, read_image(small / "images/000000.png"))
+
+
+def test_interrupted_run_leaves_no_output_and_resumes(small, tmp_path, monkeypatch):
+    real = dataset_module._make
+    calls = []
+
+    def flaky(job):
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        calls.append(job)
+        return real(job)
+
+    monkeypatch.setattr(dataset_module, "_make", flaky)
+    out = tmp_path / "data"
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(out, 8, SIZE, seed=3, progress=False)
+    assert not out.exists()
+    monkeypatch.setattr(dataset_module, "_make", real)
+    generate_dataset(out, 8, SIZE, seed=3, progress=False)
+    assert _files(out) == _files(small)
+    assert not (tmp_path / ".data.partial").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--n", "0"], "n: expected a positive number"),
+        (["--n", "2", "--size", "640by400"], "size: expected WIDTHxHEIGHT"),
+        (["--n", "2", "--size", "8x8"], "size: expected width and height"),
+        (["--n", "2", "--variant", "zeppelin"], "variant: unknown airplane variant 'zeppelin'"),
+        (["--n", "2", "--workers", "0"], "workers: expected a positive integer"),
+        (["--n", "2", "--mesh", "plane.obj"], "mesh, keypoints_json: expected both"),
+    ],
+)
+def test_cli_rejects_bad_arguments_without_output(tmp_path, args, message):
+    out = tmp_path / "out"
+    run = subprocess.run(
+        [sys.executable, "-m", "data_gen", "dataset", "--out", str(out), *args],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 2
+    assert message in run.stderr and "data_gen dataset: error:" in run.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_refuses_non_empty_or_unwritable_output(tmp_path):
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "keep.txt").write_text("mine")
+    run = subprocess.run(
+        [sys.executable, "-m", "data_gen", "dataset", "--out", str(busy), "--n", "1"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 2 and "out: directory" in run.stderr and "--overwrite" in run.stderr
+    assert [p.name for p in busy.iterdir()] == ["keep.txt"]
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    run = subprocess.run(
+        [sys.executable, "-m", "data_gen", "dataset", "--out", str(blocker / "data"), "--n", "1"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 2 and "out: cannot write into" in run.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "busy"]
+
+
+def test_cli_writes_a_dataset(tmp_path):
+    out = tmp_path / "cli"
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "data_gen",
+            "dataset",
+            "--out",
+            str(out),
+            "--n",
+            "2",
+            "--size",
+            "96x60",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    assert "images/s" in run.stdout
+    coco = json.loads((out / "annotations.json").read_text())
+    assert len(coco["images"]) == 2 and coco["images"][0]["width"] == 96
+
+
+def test_parse_size():
+    assert parse_size("640x400") == (640, 400) and parse_size((1920, 1200)) == (1920, 1200)
+    with pytest.raises(ValueError, match="size"):
+        parse_size("x400")
