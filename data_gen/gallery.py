@@ -84,7 +84,7 @@ def plot_occluders(px_per_m: float = 24.0, columns: int = 8) -> plt.Figure:
         + ", ".join(f"{f}s in {c[4:]}" for f, c in colors.items()),
         fontsize=10,
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     return fig
 
 

@@ -8,7 +8,8 @@ test split:
   (rendered top-down at the image's ground scale under its light, with its cast
   shadow) at a random place, drawn among the occluders whose patch side at the
   image's true ground scale is 8–150 px at 1920 px image width (scaled with the
-  width). ``overlapping`` iff the patch's alpha meets the airplane mask. Stored as PNG at the render's resolution.
+  width). ``overlapping`` iff the patch's alpha meets the airplane mask. Stored as
+  PNG at the render's resolution.
 - ``blocks``: in model-input space (``input_size``), per seed image 4 images with a
   3×3 block of uniform random values in [0, 255] away from the airplane
   (non-overlapping) and 4 with the block centred on a random visible keypoint

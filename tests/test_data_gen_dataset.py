@@ -1,4 +1,4 @@
-"""The rendered dataset: geometry of the annotations, masks, COCO format, determinism, CLI errors."""
+"""The rendered dataset: annotation geometry, masks, COCO format, determinism, CLI errors."""
 
 import json
 import subprocess
