@@ -2,6 +2,10 @@
 
 Stages so far:
 
+* **Data** (paper §7.1): a rendered COCO dataset of the airliner (data_gen), the
+  perturbation sets of its test seed images (objects, blocks, brightness, contrast)
+  and the gallery figures (renders, occluders, perturbations). Reused when a run with
+  the same settings already made it.
 * **T-prob** (paper Table 2): probabilistic soundness and completeness of the optimal
   tolerance allocation over κ × α, on ground-truth keypoints of overhead views of the
   canonical 23-keypoint airliner (640×400 images, 64×64 heatmaps as for the CNN).
@@ -53,11 +57,21 @@ class Profile:
     heatmap_size: int = 64
     hfov_deg: float = 70.0
     seed: int = 0
+    dataset_images: int = 300
+    dataset_size: str = "640x400"
+    perturbed_seeds: int = 5
 
 
 PROFILES = {
     "quick": Profile("quick", images=100, samples=1000),
-    "paper": Profile("paper", images=3000, samples=5000),
+    "paper": Profile(
+        "paper",
+        images=3000,
+        samples=5000,
+        dataset_images=7000,
+        dataset_size="1920x1200",
+        perturbed_seeds=200,
+    ),
 }
 
 
@@ -80,8 +94,49 @@ def reproduce(
         if value < 1:
             raise ValueError(f"{name}: expected a positive integer, got {value}")
     out = Path(out_root) / prof.name
+    data(prof, out)
     t_prob(prof, out / "tables")
     return out
+
+
+def data(prof: Profile, out: Path) -> Path:
+    """The dataset, its perturbation sets and the gallery figures under ``out``."""
+    from data_gen.dataset import generate_dataset, load_coco
+    from data_gen.gallery import write_gallery
+    from data_gen.perturb import KINDS, make_perturbations
+
+    folder = out / "data"
+    wanted = {"n": prof.dataset_images, "size": prof.dataset_size, "seed": prof.seed}
+    try:
+        config = load_coco(folder)["info"]["config"]
+        have = {
+            "n": config["n"],
+            "size": "x".join(map(str, config["size"])),
+            "seed": config["seed"],
+        }
+    except FileNotFoundError:
+        have = None
+    if have != wanted:
+        generate_dataset(
+            folder, prof.dataset_images, prof.dataset_size, prof.seed, workers=2, overwrite=True
+        )
+    input_size = prof.heatmap_size
+    for kind in KINDS:
+        meta = folder / "perturbations" / kind / "meta.json"
+        if not meta.is_file() or json.loads(meta.read_text())["config"]["input_size"] != [
+            input_size,
+            input_size,
+        ]:
+            make_perturbations(
+                folder,
+                kind,
+                seeds=prof.perturbed_seeds,
+                seed=prof.seed,
+                input_size=input_size,
+                overwrite=True,
+            )
+    write_gallery(out / "figures", folder)
+    return folder
 
 
 def t_prob(prof: Profile, tables: Path) -> pd.DataFrame:
