@@ -25,6 +25,7 @@ from __future__ import annotations
 import datetime
 import json
 import multiprocessing
+import os
 import re
 import time
 from pathlib import Path
@@ -124,7 +125,9 @@ def render_record(
 _worker: dict = {}
 
 
-def _init_worker(config: dict) -> None:
+def _init_worker(config: dict, threads: int | None = None) -> None:
+    if threads is not None:  # one rasteriser thread per worker process: no oversubscription
+        os.environ["LP_NUM_THREADS"] = str(threads)
     _worker["scene"] = SceneRenderer(_airplane(config), texture_seed=config["seed"])
     _worker["config"] = config
 
@@ -218,7 +221,7 @@ def generate_dataset(
                 bar.update()
         else:
             context = multiprocessing.get_context("spawn")
-            with context.Pool(workers, _init_worker, (config,)) as pool:
+            with context.Pool(workers, _init_worker, (config, 1)) as pool:
                 for _ in pool.imap_unordered(_make, todo, chunksize=4):
                     bar.update()
         bar.close()

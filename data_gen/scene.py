@@ -203,46 +203,43 @@ _PAINT = {
 }
 
 
-def _stripe(p0, p1, width: float, color: str, z: float) -> trimesh.Trimesh:
-    """A painted line from p0 to p1 (x, y), ``width`` metres wide, 2 cm thick, top at ``z``."""
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+def _stripes(segments: list[tuple], z: float) -> trimesh.Trimesh:
+    """Painted lines as flat quads at height ``z``: one (p0, p1, width, colour) per segment."""
+    p0 = np.array([s[0] for s in segments], float)
+    p1 = np.array([s[1] for s in segments], float)
+    half = np.array([s[2] for s in segments])[:, None] / 2
     d = p1 - p0
-    length = float(np.linalg.norm(d))
-    box = trimesh.creation.box((length, width, 0.02))
-    pose = np.eye(4)
-    angle = np.arctan2(d[1], d[0])
-    pose[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
-    pose[:3, 3] = [*(p0 + p1) / 2, z - 0.01]
-    box.apply_transform(pose)
-    box.visual.face_colors = _PAINT[color]
-    return box
+    side = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True) * half
+    corners = np.stack([p0 - side, p1 - side, p1 + side, p0 + side], 1).reshape(-1, 2)
+    vertices = np.column_stack([corners, np.full(len(corners), z)])
+    base = 4 * np.arange(len(segments))[:, None]
+    faces = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
+    colors = np.array([_PAINT[s[3]] for s in segments], np.uint8)
+    return trimesh.Trimesh(
+        vertices, faces, face_colors=np.concatenate([colors, colors]), process=False
+    )
 
 
-def _polyline(points, width, color, z, dash: float | None = None) -> list[trimesh.Trimesh]:
-    stripes = []
-    for p0, p1 in zip(points[:-1], points[1:]):
+def _polyline(points, width, color, dash: float | None = None) -> list[tuple]:
+    """Segments of a (dashed) painted polyline through ``points`` (x, y)."""
+    segments = []
+    for p0, p1 in zip(np.asarray(points[:-1], float), np.asarray(points[1:], float)):
         if dash is None:
-            stripes.append(_stripe(p0, p1, width, color, z))
+            segments.append((p0, p1, width, color))
             continue
-        n = max(int(np.linalg.norm(np.subtract(p1, p0)) // (2 * dash)), 1)
-        for k in range(n):
-            a, b = np.linspace(0, 1, 2 * n + 1)[[2 * k, 2 * k + 1]]
-            stripes.append(
-                _stripe(
-                    np.add(p0, a * np.subtract(p1, p0)),
-                    np.add(p0, b * np.subtract(p1, p0)),
-                    width,
-                    color,
-                    z,
-                )
-            )
-    return stripes
+        n = max(int(np.linalg.norm(p1 - p0) // (2 * dash)), 1)
+        cuts = np.linspace(0, 1, 2 * n + 1)
+        segments += [
+            (p0 + a * (p1 - p0), p0 + b * (p1 - p0), width, color)
+            for a, b in zip(cuts[0:-1:2], cuts[1::2])
+        ]
+    return segments
 
 
 def stand_markings(airplane: Airplane, seed: int) -> trimesh.Trimesh:
     """Painted apron markings of the airplane's stand (metres, world frame, on the ground)."""
     rng = np.random.default_rng(seed)
-    z = airplane.ground_z + 0.02
+    z = airplane.ground_z + 0.01
     (x_min, y_min, _), (x_max, y_max, _) = airplane.mesh.bounds
     offset = rng.uniform(-0.4, 0.4)
     stop = x_max + rng.uniform(1.5, 4.0)
@@ -253,9 +250,9 @@ def stand_markings(airplane: Airplane, seed: int) -> trimesh.Trimesh:
     lead = np.stack(
         [lane + radius * (1 - np.cos(arc)), offset + side * radius * (1 - np.sin(arc))], 1
     )
-    parts = _polyline([*lead, (stop, offset)], 0.15, "yellow", z)
-    parts += _polyline([(lane, y_min - 60), (lane, y_max + 60)], 0.15, "yellow", z)
-    parts.append(_stripe((stop, offset - 1.5), (stop, offset + 1.5), 0.3, "yellow", z))
+    parts = _polyline([*lead, (stop, offset)], 0.15, "yellow")
+    parts += _polyline([(lane, y_min - 60), (lane, y_max + 60)], 0.15, "yellow")
+    parts += _polyline([(stop, offset - 1.5), (stop, offset + 1.5)], 0.3, "yellow")
     # Stand safety line (red) with a margin around the airplane.
     m = rng.uniform(3, 6)
     box = [
@@ -265,17 +262,17 @@ def stand_markings(airplane: Airplane, seed: int) -> trimesh.Trimesh:
         (x_min - m, y_max + m),
         (x_min - m, y_min - m),
     ]
-    parts += _polyline(box, 0.2, "red", z)
+    parts += _polyline(box, 0.2, "red")
     # Equipment restraint line (white, dashed) and a service road beyond the stop bar.
     side = rng.choice([-1.0, 1.0])
     y_line = side * (max(y_max, -y_min) + m + rng.uniform(4, 8))
-    parts += _polyline([(x_min - m, y_line), (stop + m, y_line)], 0.15, "white", z, dash=1.5)
+    parts += _polyline([(x_min - m, y_line), (stop + m, y_line)], 0.15, "white", dash=1.5)
     road = stop + m + rng.uniform(4, 10)
     for dx, dash in ((0.0, None), (3.5, 1.5), (7.0, None)):
         parts += _polyline(
-            [(road + dx, y_min - 60), (road + dx, y_max + 60)], 0.15, "white", z, dash=dash
+            [(road + dx, y_min - 60), (road + dx, y_max + 60)], 0.15, "white", dash=dash
         )
-    return trimesh.util.concatenate(parts)
+    return _stripes(parts, z)
 
 
 class SceneRenderer:

@@ -212,7 +212,12 @@ def test_user_mesh_renders_like_a_built_in_variant(tmp_path):
 
     mesh_path, json_path = save_airplane(build_airplane("swept"), tmp_path / "mine")
     out = generate_dataset(
-        tmp_path / "user", 2, "160x100", seed=0, mesh=mesh_path, keypoints_json=json_path,
+        tmp_path / "user",
+        2,
+        "160x100",
+        seed=0,
+        mesh=mesh_path,
+        keypoints_json=json_path,
         progress=False,
     )
     coco = load_coco(out)
