@@ -57,15 +57,18 @@ def plot_renders(data_dir, count: int = 6, names: bool = True, seed: int = 0) ->
     return fig
 
 
-def plot_occluders(px_per_m: float = 24.0, columns: int = 8) -> plt.Figure:
-    """Every occluder seen from above at one common scale, grouped by family, with a 1 m bar."""
+def plot_occluders(
+    px_per_m: float = 24.0, columns: int = 8, family: str | None = None
+) -> plt.Figure:
+    """The occluders (all, or one ``family``) seen from above at one common scale, with a
+    1 m bar."""
     renderer = PatchRenderer()
     light = Light(np.array([0.45, -0.35, 0.82]), sun=0.75, ambient=0.4)
-    catalog = occluder_catalog()
+    catalog = occluder_catalog(family)
     rows = int(np.ceil(len(catalog) / columns))
     patches = [renderer.render(o.name, o.mesh, px_per_m, light, yaw=90.0) for o in catalog]
     side = max(max(p.shape[:2]) for p in patches)
-    fig, axes = plt.subplots(rows, columns, figsize=(2.2 * columns, 2.4 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, columns, figsize=(2.2 * columns, 2.7 * rows), squeeze=False)
     background = np.array([112, 112, 116], np.float32)
     colors = dict(zip(FAMILIES, ("tab:orange", "tab:green", "tab:blue")))
     for ax in axes.ravel():
@@ -80,8 +83,8 @@ def plot_occluders(px_per_m: float = 24.0, columns: int = 8) -> plt.Figure:
         ax.plot([4, 4 + px_per_m], [side - 5, side - 5], color="white", lw=2)
         ax.set_title(occluder.name.replace("_", " "), fontsize=7, color=colors[occluder.family])
     fig.suptitle(
-        f"{len(catalog)} occluders at {px_per_m:g} px/m (bar: 1 m); "
-        + ", ".join(f"{f}s in {c[4:]}" for f, c in colors.items()),
+        f"{len(catalog)} {family or 'occluder'}s at {px_per_m:g} px/m (bar: 1 m); "
+        + ", ".join(f"{f}: {c[4:]}" for f, c in colors.items()),
         fontsize=10,
     )
     fig.tight_layout(rect=(0, 0, 1, 0.97))
@@ -128,7 +131,10 @@ def plot_perturbations(data_dir, image_id: int | None = None) -> plt.Figure:
 def write_gallery(out, data_dir=None) -> list[Path]:
     """Save the figures as PNGs in ``out``; renders and perturbations need ``data_dir``."""
     out = Path(out)
-    figures = {"occluders": plot_occluders}
+    figures = {
+        "occluders": plot_occluders,
+        "crew_closeup": lambda: plot_occluders(px_per_m=96.0, family="person"),
+    }
     if data_dir is not None:
         load_coco(data_dir)
         figures["renders"] = lambda: plot_renders(data_dir)

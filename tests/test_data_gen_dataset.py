@@ -238,7 +238,8 @@ def test_gallery_draws_every_figure(small, tmp_path):
 
     make_perturbations(small, "brightness", seeds=1, input_size=32, overwrite=True)
     paths = write_gallery(tmp_path / "figs", small)
-    assert sorted(p.name for p in paths) == ["occluders.png", "perturbations.png", "renders.png"]
+    names = ["crew_closeup.png", "occluders.png", "perturbations.png", "renders.png"]
+    assert sorted(p.name for p in paths) == names
     for path in paths:
         picture = read_image(path)
         assert picture.shape[0] > 200 and picture.std() > 10  # drawn, not blank
