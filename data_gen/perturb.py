@@ -188,13 +188,15 @@ def _blocks(data_dir, coco, ids, staging, per_seed, seed, input_size) -> list[di
     return meta
 
 
-def apply_global(image: np.ndarray, kind: str, value: float) -> np.ndarray:
+def apply_global(image: np.ndarray, kind: str, value: float, clip: bool = True) -> np.ndarray:
     """``clip(I + value)`` (brightness) or ``clip(I·(1 + value))`` (contrast), I in [0, 255]."""
     if kind == "brightness":
-        return np.clip(image + value, 0, 255).astype(np.float32)
-    if kind == "contrast":
-        return np.clip(image * (1 + value), 0, 255).astype(np.float32)
-    raise ValueError(f"kind: expected 'brightness' or 'contrast', got {kind!r}")
+        out = image + value
+    elif kind == "contrast":
+        out = image * (1 + value)
+    else:
+        raise ValueError(f"kind: expected 'brightness' or 'contrast', got {kind!r}")
+    return (np.clip(out, 0, 255) if clip else out).astype(np.float32)
 
 
 def _global(data_dir, coco, ids, staging, kind, levels, input_size) -> list[dict]:
@@ -204,12 +206,8 @@ def _global(data_dir, coco, ids, staging, kind, levels, input_size) -> list[dict
         seed_image, seed_name = _input_seed(data_dir, images[image_id], input_size, staging)
         for level in levels:
             for sign in (1, -1):
-                raw = (
-                    seed_image + sign * level
-                    if kind == "brightness"
-                    else seed_image * (1 + sign * level)
-                )
-                perturbed = apply_global(seed_image, kind, sign * level)
+                raw = apply_global(seed_image, kind, sign * level, clip=False)
+                perturbed = np.clip(raw, 0, 255)
                 name = f"{image_id:06d}_{level:g}_{'plus' if sign > 0 else 'minus'}.npy"
                 _write_npy(staging / name, perturbed)
                 meta.append(

@@ -65,13 +65,22 @@ class SceneParams:
 
 def camera_pose(params: SceneParams, ground_z: float) -> tuple[np.ndarray, np.ndarray]:
     """Object → camera pose ``(R (3, 3), t (3,))`` of a scene's camera."""
-    tilt, direction = np.deg2rad(params.tilt), np.deg2rad(params.tilt_direction)
+    return _pose(
+        params.heading, params.tilt, params.tilt_direction, params.altitude, params.aim, ground_z
+    )
+
+
+def _pose(heading, tilt, tilt_direction, altitude, aim, ground_z, **_):
+    """A camera ``altitude`` metres above the ground aiming at ``aim`` (x, y), its optical
+    axis ``tilt`` degrees from the nadir towards ``tilt_direction``, the image turned by
+    ``heading`` about the vertical."""
+    tilt, direction = np.deg2rad(tilt), np.deg2rad(tilt_direction)
     axis = np.array(
         [np.sin(tilt) * np.cos(direction), np.sin(tilt) * np.sin(direction), -np.cos(tilt)]
     )
-    target = np.array([*params.aim, ground_z])
-    eye = target - axis * params.altitude / np.cos(tilt)
-    heading = np.deg2rad(params.heading)
+    target = np.array([*aim, ground_z])
+    eye = target - axis * altitude / np.cos(tilt)
+    heading = np.deg2rad(heading)
     return look_at(eye, target, up=(np.cos(heading), np.sin(heading), 0.0))
 
 
@@ -112,10 +121,10 @@ def sample_scene(
         )
         # The span scales as 1/altitude; two fixed-point steps absorb the tilt.
         for _ in range(2):
-            R, t = camera_pose(SceneParams(**params, **_LIGHT_DEFAULTS), airplane.ground_z)
+            R, t = _pose(**params, ground_z=airplane.ground_z)
             lo, hi = _span(hull, R, t, K)
             params["altitude"] *= np.max((hi - lo) / size) / params["coverage"]
-        R, t = camera_pose(SceneParams(**params, **_LIGHT_DEFAULTS), airplane.ground_z)
+        R, t = _pose(**params, ground_z=airplane.ground_z)
         lo, hi = _span(hull, R, t, K)
         slack = (size - 2 * margin - (hi - lo)) / 2
         if np.any(slack <= 0):
@@ -140,18 +149,6 @@ def sample_scene(
         if np.all(lo >= margin - 0.5) and np.all(hi <= size - margin - 0.5):
             return scene
     raise RuntimeError("sample_scene: could not fit the airplane in the frame in 100 draws")
-
-
-_LIGHT_DEFAULTS = dict(
-    sun_azimuth=0.0,
-    sun_elevation=45.0,
-    sun=0.8,
-    ambient=0.35,
-    texture=0,
-    ground_angle=0.0,
-    ground_shift=(0.0, 0.0),
-    markings_seed=0,
-)
 
 
 def _periodic_noise(rng: np.random.Generator, size: int, exponent: float, low_cut: float = 1.0):
