@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -31,6 +29,7 @@ import numpy as np
 import trimesh
 
 from data_gen.keypoints import KEYPOINT_NAMES
+from kpstudy.io import write_bytes_atomic, write_text_atomic
 
 RGB = tuple[int, int, int]
 
@@ -1061,17 +1060,7 @@ def save_airplane(airplane: Airplane, directory) -> tuple[Path, Path]:
             for n, p in zip(airplane.keypoint_names, airplane.keypoints)
         ],
     }
-    _write_atomic(mesh_path, airplane.mesh.export(file_type="ply"))
-    _write_atomic(json_path, (json.dumps(document, indent=1) + "\n").encode("utf-8"))
+    write_bytes_atomic(mesh_path, airplane.mesh.export(file_type="ply"))
+    write_text_atomic(json_path, json.dumps(document, indent=1) + "\n")
     return mesh_path, json_path
 
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
