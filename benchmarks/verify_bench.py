@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from benchmarks.common import emit, timed
 from kpstudy.models import HeatmapCNN, build_proxy
+from kpstudy.pooling import keypoint_pooling
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
 
 
@@ -60,7 +61,8 @@ def instances(net, count: int, ms, seed: int, perturbation: str = "occlusion"):
         with torch.no_grad():
             idx = net(x0[None])[0].flatten(1).argmax(1)
         centers = torch.stack([idx % 64, idx // 64], 1).tolist()
-        proxy, spec = build_proxy(net, centers, [(2, 2)] * len(centers), (64, 64))
+        proxy = build_proxy(net, keypoint_pooling(centers, [(2, 2)] * len(centers), (64, 64)))
+        spec = ArgmaxSpec([p.n_v * p.n_h for p in proxy.pools], [0] * len(centers))
         with torch.no_grad():  # targets: the cells that win on the seed (holds at X0)
             y = proxy(x0[None])[0]
         wins = [int(y[a:b].argmax()) for a, b in zip(spec.offsets[:-1], spec.offsets[1:])]

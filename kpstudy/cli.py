@@ -1,8 +1,10 @@
-"""Command line: ``python -m kpstudy <command>``. Bad arguments exit with status 2."""
+"""Command line: ``python -m kpstudy reproduce|train|evaluate``. Bad arguments exit with
+status 2 and a message naming the argument."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 
@@ -14,17 +16,87 @@ def main(argv=None) -> int:
     rep.add_argument("--out", default="results", help="results root folder")
     rep.add_argument("--images", type=int, help="override the profile's number of images")
     rep.add_argument("--samples", type=int, help="override the Monte Carlo samples per image")
+
+    from kpstudy.train import TrainConfig
+
+    default = TrainConfig()
+    tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
+    tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
+    tr.add_argument("--backbone", default=default.backbone, help="cnn (default) or resnet18")
+    tr.add_argument("--epochs", type=int, default=default.epochs)
+    tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")
+    tr.add_argument("--batch-size", type=int, default=default.batch_size)
+    tr.add_argument("--lr", type=float, default=default.lr, help="peak learning rate")
+    tr.add_argument("--weight-decay", type=float, default=default.weight_decay)
+    tr.add_argument("--sigma", type=float, default=default.sigma, help="target std, heatmap px")
+    tr.add_argument("--dsnt-weight", type=float, default=default.dsnt_weight)
+    tr.add_argument("--jitter", type=float, default=default.jitter)
+    tr.add_argument("--noise", type=float, default=default.noise)
+    tr.add_argument("--images", type=int, help="use at most this many training images")
+    tr.add_argument("--seed", type=int, default=default.seed)
+    tr.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
+    tr.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+
+    ev = sub.add_parser("evaluate", help="keypoint and pose metrics of a trained checkpoint")
+    ev.add_argument("--checkpoint", required=True)
+    ev.add_argument("--data", required=True, help="dataset folder")
+    ev.add_argument("--split", default="test", help="train, val or test (default)")
+    ev.add_argument("--out", help="write OUT.csv and OUT.md (summary), OUT_images.csv")
     args = parser.parse_args(argv)
 
-    if args.command == "reproduce":
-        from kpstudy.reproduce import reproduce
+    try:
+        if args.command == "reproduce":
+            from kpstudy.reproduce import reproduce
 
-        try:
             out = reproduce(args.profile, args.out, images=args.images, samples=args.samples)
-        except ValueError as exc:
-            parser.exit(2, f"kpstudy reproduce: error: {exc}\n")
-        print(f"results written to {out}")
+            print(f"results written to {out}")
+        elif args.command == "train":
+            _train(args)
+        else:
+            _evaluate(args)
+    except (ValueError, FileNotFoundError) as exc:
+        parser.exit(2, f"kpstudy {args.command}: error: {exc}\n")
     return 0
+
+
+def _train(args) -> None:
+    import torch
+
+    from kpstudy.train import TrainConfig, train
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"threads: expected a positive integer, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    config = TrainConfig(
+        backbone=args.backbone,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        weight_decay=args.weight_decay,
+        sigma=args.sigma,
+        dsnt_weight=args.dsnt_weight,
+        jitter=args.jitter,
+        noise=args.noise,
+        images=args.images,
+        seed=args.seed,
+    )
+    state = train(args.data, args.out, config, device=args.device)
+    print(json.dumps(state["history"][-1]))
+
+
+def _evaluate(args) -> None:
+    import pandas as pd
+
+    from kpstudy.evaluate import evaluate
+    from kpstudy.io import write_table, write_text_atomic
+
+    summary, per_image = evaluate(args.checkpoint, args.data, args.split)
+    if args.out:
+        write_table(summary, args.out)
+        write_text_atomic(f"{args.out}_images.csv", per_image.to_csv(index=False))
+    with pd.option_context("display.width", 200, "display.max_columns", 30):
+        print(summary.to_string(index=False))
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ def _check_problem(P, V, K) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s = np.linalg.svd(X - X.mean(0), compute_uv=False)
         if s[1] <= 1e-9 * max(s[0], 1e-300):
             raise ValueError(f"{name}: expected points that are not collinear")
-    return P, V, K
+    return np.ascontiguousarray(P), np.ascontiguousarray(V), K  # OpenCV wants contiguous rows
 
 
 def _check_pose(init, name: str = "init") -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +74,10 @@ def solve_pnp(P, V, K, init=None) -> tuple[np.ndarray, np.ndarray]:
     """
     P, V, K = _check_problem(P, V, K)
     if init is None:
-        ok, rvec, tvec = cv2.solvePnP(P, V, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        try:
+            ok, rvec, tvec = cv2.solvePnP(P, V, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error as exc:  # e.g. SQPnP's variance threshold on clustered points
+            raise ValueError(f"V: OpenCV's SQPnP rejected these keypoints ({exc.err})") from exc
         if not ok:
             raise RuntimeError("solve_pnp: SQPnP found no pose for these correspondences")
     else:

@@ -235,6 +235,37 @@ def build_cell_pool(center_uv, dv_uv, heatmap_size) -> tuple[CellAvgPool2d, int]
     return pool, target
 
 
+def keypoint_pooling(centers, dv, heatmap_size) -> list[tuple[PoolParams, PoolParams]]:
+    """One (horizontal, vertical) pair of :func:`pooling_params` per keypoint.
+
+    Parameters
+    ----------
+    centers : array_like of int, shape (K, 2)
+        Nominal keypoints ``(u, v)`` in heatmap pixels.
+    dv : array_like of int, shape (K, 2)
+        Tolerances ``(δu, δv)`` in heatmap pixels.
+    heatmap_size : (int, int)
+        ``(H, W)``.
+
+    Examples
+    --------
+    >>> horizontal, vertical = keypoint_pooling([(4, 0)], [(1, 0)], (2, 10))[0]
+    >>> horizontal
+    PoolParams(kernel=3, stride=3, pad_before=0, pad_after=2)
+    """
+    centers, dv = [_pair(c, "centers[k]") for c in centers], [_pair(d, "dv[k]") for d in dv]
+    if len(centers) != len(dv):
+        raise ValueError(f"dv: expected {len(centers)} rows (one per center), got {len(dv)}")
+    H, W = _pair(heatmap_size, "heatmap_size")
+    return [
+        (
+            _axis_params(u, du, W, (f"centers[{k}][0]", f"dv[{k}][0]", "heatmap_size[1]")),
+            _axis_params(v, dv_, H, (f"centers[{k}][1]", f"dv[{k}][1]", "heatmap_size[0]")),
+        )
+        for k, ((u, v), (du, dv_)) in enumerate(zip(centers, dv))
+    ]
+
+
 def _axis_params(center, dv, size, names: tuple[str, str, str]) -> PoolParams:
     size = _int(size, names[2], 1, None, "an integer >= 1")
     center = _int(center, names[0], 0, size, f"an integer pixel in [0, {size})")

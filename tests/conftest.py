@@ -28,3 +28,13 @@ def views(n, seed, K, P, noise_px=0.0):
     if noise_px:
         V = V + np.random.default_rng(seed + 1).normal(0.0, noise_px, V.shape)
     return R, t, V
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """A rendered 20-image dataset at 160×100 (16 train, 2 val, 2 test images)."""
+    from data_gen.dataset import generate_dataset
+
+    return generate_dataset(
+        tmp_path_factory.mktemp("tiny") / "data", 20, "160x100", seed=5, progress=False
+    )

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 from torch import nn
 
+from kpstudy.models.base import HeatmapBackbone
+
 _ENCODER = [(3, 32, 1), (32, 64, 2), (64, 64, 1), (64, 128, 2), (128, 128, 1)]
 _DECODER = [(128, 128, 2), (128, 64, 1), (64, 32, 2), (32, 32, 1)]
 
 
-class HeatmapCNN(nn.Sequential):
+class HeatmapCNN(HeatmapBackbone):
     """Heatmap backbone ``(B, 3, 64, 64) → (B, K, 64, 64)``.
 
     Parameters
@@ -28,6 +30,9 @@ class HeatmapCNN(nn.Sequential):
     >>> net(torch.zeros(1, 3, 64, 64)).shape  # doctest: +SKIP
     torch.Size([1, 23, 64, 64])
     """
+
+    input_size = 64
+    heatmap_size = 64
 
     def __init__(self, keypoints: int = 23) -> None:
         layers: list[nn.Module] = []

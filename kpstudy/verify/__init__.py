@@ -5,12 +5,13 @@ An instance is a problem (model, input set, output spec) × a bound method × a 
 ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
 :func:`output_bounds` with ``'ibp'``, ``'forward'`` or ``'crown'``; :func:`verify` returns
 a :class:`Result` — ``holds``, ``violated`` with a re-checked counterexample, or
-``unknown``; :func:`export_instance` writes ONNX + VNN-LIB for other verifiers.
+``unknown``; :func:`export_instance` writes ONNX + VNN-LIB for other verifiers and
+:func:`export_onnx` a plain network (a backbone, a proxy).
 """
 
 from kpstudy.verify.bab import verify
 from kpstudy.verify.bounds import output_bounds
-from kpstudy.verify.export import export_instance, read_vnnlib_polytope
+from kpstudy.verify.export import export_instance, export_onnx, read_vnnlib_polytope
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.spec import ArgmaxSpec
@@ -23,6 +24,7 @@ __all__ = [
     "Parallelotope",
     "Result",
     "export_instance",
+    "export_onnx",
     "output_bounds",
     "read_vnnlib_polytope",
     "verify",

@@ -132,6 +132,25 @@ def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *,
     }
 
 
+def export_onnx(model: nn.Module, example: torch.Tensor, path, *, opset=17) -> Path:
+    """Write ``model`` (a float32 eval-mode copy) as ONNX with input ``x`` and output ``y``.
+
+    ``example`` fixes the input shape, e.g. ``torch.zeros(1, 3, 64, 64)`` for the CNN
+    backbone or its proxy. The file appears only when the export succeeded.
+
+    Examples
+    --------
+    >>> export_onnx(build_backbone("cnn"), torch.zeros(1, 3, 64, 64), "cnn.onnx")  # doctest: +SKIP
+    """
+    if not isinstance(model, nn.Module):
+        raise ValueError(f"model: expected a torch.nn.Module, got {type(model).__name__}")
+    model = copy.deepcopy(model).float().eval()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        _export_onnx(model, example.float(), "x", tmp, opset)
+    return path
+
+
 def read_vnnlib_polytope(path) -> dict:
     """Parse a ``spec.vnnlib`` written by :func:`export_instance` (only that subset).
 

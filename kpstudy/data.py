@@ -1,0 +1,133 @@
+"""data_gen's COCO keypoint dataset as network inputs, keypoint labels and poses.
+
+Images go through preprocessing F0 (:mod:`kpstudy.preprocess`): the whole image is
+resized to the square model input, values stay in [0, 255] (``normalise`` divides by 255
+when a batch enters a network). Keypoints are converted to the heatmap's pixels with the
+resize factors (DESIGN.md §3); the backbones' heatmaps have the input's size.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class KeypointSet:
+    """One split of a keypoint dataset at one input size (N images, K keypoints).
+
+    Attributes
+    ----------
+    images : ndarray, (N, s, s, 3) float32
+        Preprocessed images in [0, 255].
+    keypoints : ndarray, (N, K, 2) float64
+        Ground-truth ``(u, v)`` in heatmap (= input) pixels.
+    visibility : ndarray, (N, K) int
+        COCO flags: 0 outside the image, 1 hidden, 2 visible.
+    image_keypoints : ndarray, (N, K, 2) float64
+        Ground-truth ``(u, v)`` in image pixels.
+    K, R, t : ndarray, (N, 3, 3), (N, 3, 3), (N, 3)
+        Intrinsics and ground-truth pose (object → camera, metres).
+    points_3d : ndarray, (K, 3)
+        The keypoints in the object frame (metres).
+    image_ids : ndarray, (N,) int
+    image_size : (int, int)
+        ``(W, H)`` of the rendered images.
+    input_size : int
+    keypoint_names : list of str
+    """
+
+    images: np.ndarray
+    keypoints: np.ndarray
+    visibility: np.ndarray
+    image_keypoints: np.ndarray
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    points_3d: np.ndarray
+    image_ids: np.ndarray
+    image_size: tuple[int, int]
+    input_size: int
+    keypoint_names: list[str]
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """Resize factors ``(sx, sy)`` from image to heatmap pixels."""
+        return scale_factors(self.image_size, self.input_size)
+
+    def to_image_pixels(self, uv) -> np.ndarray:
+        """Heatmap pixel coordinates (..., 2) → image pixel coordinates (..., 2)."""
+        return (np.asarray(uv, float) + 0.5) / np.asarray(self.scale) - 0.5
+
+
+def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> KeypointSet:
+    """Read one split of data_gen's dataset at ``data_dir`` and preprocess its images.
+
+    Parameters
+    ----------
+    data_dir : path
+        A folder written by ``python -m data_gen dataset``.
+    split : {'train', 'val', 'test'}
+    input_size : int
+        Side of the square model input (64 for the CNN, 256 for ResNet-18).
+    limit : int, optional
+        Keep the first ``limit`` images of the split.
+    """
+    from data_gen.dataset import load_coco, read_image
+
+    if split not in SPLITS:
+        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+    if isinstance(input_size, bool) or not isinstance(input_size, int) or input_size < 1:
+        raise ValueError(f"input_size: expected a positive integer, got {input_size!r}")
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise FileNotFoundError(f"data: no dataset folder at {data_dir}")
+    coco = load_coco(data_dir)
+    try:
+        category = coco["categories"][0]
+        by_image = {a["image_id"]: a for a in coco["annotations"]}
+        images = [im for im in coco["images"] if im["split"] == split][:limit]
+        sizes = {(im["width"], im["height"]) for im in images}
+        if not images:
+            raise ValueError(f"split: the dataset at {data_dir} has no {split!r} images")
+        if len(sizes) != 1:
+            raise ValueError(f"data: expected one image size, got {sorted(sizes)}")
+        names = list(category["keypoints"])
+        points_3d = np.asarray(category["keypoints_3d"], float)
+        kps = np.array([by_image[im["id"]]["keypoints"] for im in images], float)
+        kps = kps.reshape(len(images), len(names), 3)
+        poses = [by_image[im["id"]]["pose"] for im in images]
+    except (KeyError, IndexError, TypeError) as exc:
+        raise ValueError(f"data: {data_dir} is not a data_gen keypoint dataset ({exc!r})") from exc
+    image_size = sizes.pop()
+
+    def load(im):
+        return resize_to_input(read_image(data_dir / im["file_name"]), input_size)
+
+    with ThreadPoolExecutor(2) as pool:
+        pixels = np.stack(list(pool.map(load, images)))
+    uv = kps[..., :2]
+    return KeypointSet(
+        images=pixels,
+        keypoints=to_input_pixels(uv, scale_factors(image_size, input_size)),
+        visibility=kps[..., 2].astype(int),
+        image_keypoints=uv,
+        K=np.array([im["K"] for im in images], float),
+        R=np.array([p["R"] for p in poses], float),
+        t=np.array([p["t"] for p in poses], float),
+        points_3d=points_3d,
+        image_ids=np.array([im["id"] for im in images]),
+        image_size=image_size,
+        input_size=input_size,
+        keypoint_names=names,
+    )

@@ -1,0 +1,26 @@
+"""The common shape of heatmap backbones: a sequence of layers with a checked input."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.fx._symbolic_trace import is_fx_symbolic_tracing
+
+
+class HeatmapBackbone(nn.Sequential):
+    """``(B, 3, input_size, input_size)`` images → ``(B, K, heatmap_size, heatmap_size)``
+    unnormalised heatmaps. ``forward`` names a wrong input shape or dtype (the check is
+    skipped while tracing for the verifier or an ONNX export)."""
+
+    input_size: int
+    heatmap_size: int
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not (is_fx_symbolic_tracing() or torch.jit.is_tracing() or torch.compiler.is_compiling()):
+            s = self.input_size
+            if not isinstance(x, torch.Tensor) or x.ndim != 4 or tuple(x.shape[1:]) != (3, s, s):
+                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+                raise ValueError(f"x: expected images of shape (B, 3, {s}, {s}), got {got}")
+            if not x.is_floating_point():
+                raise ValueError(f"x: expected a floating-point tensor in [0, 1], got {x.dtype}")
+        return super().forward(x)

@@ -1,0 +1,298 @@
+"""Training a heatmap backbone on data_gen's dataset (paper §8.1).
+
+Targets are Gaussians (kornia ``render_gaussian2d``, σ in heatmap pixels) normalised to
+sum 1; the loss is the cross-entropy of the network's spatial softmax against them (the
+target head's softmax is trained directly), minus the target's entropy so that a perfect
+fit scores 0 (a KL divergence), optionally plus ``dsnt_weight`` × the mean Euclidean
+error of the DSNT keypoints in heatmap pixels. Keypoints outside the image are left out.
+Augmentation keeps the keypoint geometry: colour jitter and Gaussian noise (kornia).
+AdamW with a one-cycle schedule.
+
+A checkpoint (``torch.save``, written atomically after every epoch) holds the
+configuration, the dataset's description, the model, optimiser and scheduler states and
+the metric history; training again with the same configuration resumes from it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import kornia.augmentation as KA
+import numpy as np
+import torch
+from kornia.geometry.subpix import render_gaussian2d
+from torch import nn
+from tqdm import tqdm
+
+from kpstudy.data import KeypointSet, load_keypoint_set
+from kpstudy.io import write_bytes_atomic
+from kpstudy.models import BACKBONES, argmax_keypoints, build_backbone, dsnt_keypoints
+
+FORMAT = "kpstudy-checkpoint/1"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (stored in the checkpoint).
+
+    ``images``: use at most this many training images (``None``: all).
+    ``sigma``: target Gaussian std, heatmap pixels. ``jitter``: brightness, contrast and
+    saturation jitter strength. ``noise``: Gaussian noise std on the [0, 1] input.
+    """
+
+    backbone: str = "cnn"
+    epochs: int = 40
+    batch_size: int = 32
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    sigma: float = 1.0
+    dsnt_weight: float = 0.05
+    jitter: float = 0.2
+    noise: float = 0.02
+    images: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.backbone not in BACKBONES:
+            raise ValueError(
+                f"backbone: expected one of {sorted(BACKBONES)}, got {self.backbone!r}"
+            )
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        if self.images is not None and (not isinstance(self.images, int) or self.images < 1):
+            raise ValueError(f"images: expected a positive integer or None, got {self.images!r}")
+        for name in ("lr", "sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+        for name in ("weight_decay", "dsnt_weight", "jitter", "noise"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name}: expected a number >= 0, got {getattr(self, name)!r}")
+
+
+def heatmap_targets(keypoints: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
+    """Gaussian target distributions ``(B, K, size, size)`` (each sums to 1) centred at
+    ``keypoints`` ``(B, K, 2)`` given as ``(u, v)`` heatmap pixels."""
+    std = torch.full_like(keypoints, float(sigma))
+    g = render_gaussian2d(keypoints, std, (size, size), normalized_coordinates=False)
+    return g / g.sum((-2, -1), keepdim=True).clamp_min(1e-30)
+
+
+def heatmap_loss(heatmaps, keypoints, weights, sigma: float, dsnt_weight: float = 0.0):
+    """Mean over weighted keypoints of KL(target ‖ softmax(heatmap)) + ``dsnt_weight`` ×
+    DSNT error (heatmap pixels).
+
+    Parameters
+    ----------
+    heatmaps : Tensor, (B, K, H, W)
+        Unnormalised heatmaps (``H == W``).
+    keypoints : Tensor, (B, K, 2)
+        Ground truth ``(u, v)`` in heatmap pixels.
+    weights : Tensor, (B, K)
+        1 for keypoints to learn, 0 to leave out.
+    """
+    B, K, H, W = heatmaps.shape
+    target = heatmap_targets(keypoints, H, sigma).flatten(2)
+    log_p = torch.log_softmax(heatmaps.flatten(2), -1)
+    kl = (target * (torch.log(target.clamp_min(1e-30)) - log_p)).sum(-1)
+    loss = kl
+    if dsnt_weight:
+        loss = loss + dsnt_weight * (dsnt_keypoints(heatmaps) - keypoints).norm(dim=-1)
+    return (loss * weights).sum() / weights.sum().clamp_min(1.0)
+
+
+def pck(pred, truth, weights, thresholds=(1, 2, 4)) -> dict:
+    """Fraction of weighted keypoints whose error is ≤ each threshold (heatmap pixels),
+    and the mean error. ``pred``, ``truth``: ``(N, K, 2)``; ``weights``: ``(N, K)``."""
+    err = np.linalg.norm(np.asarray(pred, float) - np.asarray(truth, float), axis=-1)
+    keep = np.asarray(weights) > 0
+    out = {f"pck@{t}": float((err[keep] <= t).mean()) for t in thresholds}
+    out["mean_error"] = float(err[keep].mean())
+    return out
+
+
+def predict(backbone: nn.Module, images: np.ndarray, batch_size: int = 64):
+    """Argmax and DSNT keypoints ``(N, K, 2)`` (heatmap pixels) of preprocessed
+    images ``(N, s, s, 3)`` in [0, 255]; the backbone runs in eval mode on its device."""
+    backbone.eval()
+    device = next(backbone.parameters()).device
+    arg, dsnt = [], []
+    with torch.no_grad():
+        for i in range(0, len(images), batch_size):
+            h = backbone(_batch(images[i : i + batch_size]).to(device)).float()
+            arg.append(argmax_keypoints(h).cpu().numpy())
+            dsnt.append(dsnt_keypoints(h).cpu().numpy())
+    return np.concatenate(arg).astype(float), np.concatenate(dsnt).astype(float)
+
+
+def train(
+    data_dir, out, config: TrainConfig = TrainConfig(), *, device="cpu", progress: bool = True
+) -> dict:
+    """Train (or resume) a backbone on ``data_dir`` and write the checkpoint ``out``.
+
+    ``device`` (``'cpu'``, ``'cuda'``) changes where it runs, not the result's format.
+
+    A checkpoint already at ``out`` with the same configuration is resumed (a finished
+    one is returned as it is); one with another configuration is an error.
+
+    Returns
+    -------
+    dict
+        The checkpoint (``config``, ``history`` with per-epoch loss, validation PCK and
+        time, ``model`` state, …).
+    """
+    out = Path(out)
+    if out.exists() and out.is_dir():
+        raise ValueError(f"out: expected a checkpoint file path, got the folder {out}")
+    state = _resume(out, config)
+    if state is not None and state["epoch"] >= config.epochs:
+        return state
+    torch.manual_seed(config.seed)  # the initial weights
+    backbone = build_backbone(config.backbone)
+    size = backbone.input_size
+    train_set = load_keypoint_set(data_dir, "train", size, limit=config.images)
+    val_set = load_keypoint_set(data_dir, "val", size)
+    dataset = _describe(data_dir, train_set, val_set)
+    if state is not None and state["dataset"] != dataset:
+        raise ValueError(f"data: {data_dir} is not the dataset checkpoint {out} was trained on")
+    try:
+        device = torch.device(device)
+        torch.empty(0, device=device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"device: expected an available torch device, got {device!r}") from exc
+    backbone = backbone.to(device, memory_format=torch.channels_last)
+    optimiser = torch.optim.AdamW(
+        backbone.parameters(), lr=config.lr, weight_decay=config.weight_decay
+    )
+    steps = -(-len(train_set) // config.batch_size)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(
+        optimiser, max_lr=config.lr, total_steps=config.epochs * steps, pct_start=0.15
+    )
+    if state is None:
+        state = dict(format=FORMAT, config=asdict(config), dataset=dataset, epoch=0, history=[])
+    else:
+        backbone.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+    augment = _augmentation(config).to(device)
+    weights = torch.from_numpy((train_set.visibility > 0).astype(np.float32)).to(device)
+    keypoints = torch.from_numpy(train_set.keypoints.astype(np.float32)).to(device)
+    for epoch in range(state["epoch"], config.epochs):
+        start = time.perf_counter()
+        torch.manual_seed(config.seed * 100_003 + epoch)
+        order = torch.randperm(len(train_set))
+        backbone.train()
+        total, bar = (
+            0.0,
+            tqdm(range(steps), desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress),
+        )
+        for step in bar:
+            idx = order[step * config.batch_size : (step + 1) * config.batch_size]
+            x = augment(_batch(train_set.images[idx.numpy()]).to(device))
+            x = x.contiguous(memory_format=torch.channels_last)
+            idx = idx.to(device)
+            loss = heatmap_loss(
+                backbone(x), keypoints[idx], weights[idx], config.sigma, config.dsnt_weight
+            )
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            scheduler.step()
+            value = loss.item()
+            total += value * len(idx)
+            bar.set_postfix(loss=f"{value:.3f}")
+        arg, dsnt = predict(backbone, val_set.images)
+        vis = val_set.visibility > 0
+        row = dict(
+            epoch=epoch + 1,
+            loss=total / len(train_set),
+            seconds=time.perf_counter() - start,
+            **{f"val_{k}": v for k, v in pck(arg, val_set.keypoints, vis).items()},
+            val_dsnt_mean_error=pck(dsnt, val_set.keypoints, vis)["mean_error"],
+        )
+        state.update(
+            epoch=epoch + 1,
+            history=state["history"] + [row],
+            model={k: v.cpu() for k, v in backbone.state_dict().items()},
+            optimizer=optimiser.state_dict(),
+            scheduler=scheduler.state_dict(),
+            keypoint_names=train_set.keypoint_names,
+        )
+        _save(out, state)
+        if progress:
+            print(json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
+    return state
+
+
+def load_checkpoint(path) -> tuple[nn.Module, dict]:
+    """The trained backbone (eval mode) and the checkpoint dictionary at ``path``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint: no file at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(state, dict) or state.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} file")
+        config = TrainConfig(**state["config"])
+        backbone = build_backbone(config.backbone, len(state["keypoint_names"]))
+        backbone.load_state_dict(state["model"])
+    except Exception as exc:
+        raise ValueError(f"checkpoint: cannot read {path} ({exc})") from exc
+    return backbone.eval(), state
+
+
+def _resume(out: Path, config: TrainConfig):
+    if not out.exists():
+        return None
+    try:
+        state = torch.load(out, map_location="cpu", weights_only=True)
+        saved = TrainConfig(**state["config"])
+    except Exception as exc:
+        raise ValueError(f"out: {out} exists and is not a readable checkpoint ({exc})") from exc
+    differ = [
+        f.name for f in fields(TrainConfig) if getattr(saved, f.name) != getattr(config, f.name)
+    ]
+    if differ:
+        raise ValueError(
+            f"out: {out} was trained with another configuration ({', '.join(differ)} differ); "
+            "choose another --out or delete it"
+        )
+    return state
+
+
+def _describe(data_dir, train_set: KeypointSet, val_set: KeypointSet) -> dict:
+    from data_gen.dataset import load_coco
+
+    return dict(
+        path=str(Path(data_dir).resolve()),
+        config=load_coco(data_dir)["info"].get("config"),
+        train_images=len(train_set),
+        val_images=len(val_set),
+        input_size=train_set.input_size,
+    )
+
+
+def _save(path: Path, state: dict) -> None:
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_bytes_atomic(path, buffer.getvalue())
+
+
+def _batch(images: np.ndarray) -> torch.Tensor:
+    """Preprocessed ``(B, s, s, 3)`` [0, 255] → normalised ``(B, 3, s, s)`` float32."""
+    return torch.from_numpy(np.ascontiguousarray(images, np.float32)).permute(0, 3, 1, 2) / 255.0
+
+
+def _augmentation(config: TrainConfig) -> nn.Module:
+    steps: list[nn.Module] = []
+    if config.jitter:
+        j = config.jitter
+        steps.append(KA.ColorJiggle(j, j, j, 0.0, p=1.0))
+    if config.noise:
+        steps.append(KA.RandomGaussianNoise(std=config.noise, p=1.0))
+    return nn.Sequential(*steps)

@@ -1,0 +1,225 @@
+"""Keypoint data, the training loop, checkpoints and evaluation on a tiny rendered dataset."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from kpstudy import train as train_module
+from kpstudy.data import load_keypoint_set
+from kpstudy.evaluate import evaluate, inside, pose_errors
+from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
+from kpstudy.train import (
+    TrainConfig,
+    heatmap_loss,
+    heatmap_targets,
+    load_checkpoint,
+    pck,
+    train,
+)
+
+TINY = TrainConfig(epochs=3, batch_size=4, images=8, lr=3e-3, seed=1)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tiny_dataset, tmp_path_factory):
+    path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
+    train(tiny_dataset, path, TINY, progress=False)
+    return path
+
+
+def test_keypoint_set_is_preprocessing_f0(tiny_dataset):
+    from data_gen.dataset import read_image
+
+    data = load_keypoint_set(tiny_dataset, "train", 64)
+    assert data.images.shape == (16, 64, 64, 3) and data.images.dtype == np.float32
+    assert data.keypoints.shape == (16, 23, 2) and data.image_size == (160, 100)
+    first = read_image(tiny_dataset / "images" / f"{data.image_ids[0]:06d}.png")
+    np.testing.assert_array_equal(data.images[0], resize_to_input(first, 64))
+    factors = scale_factors((160, 100), 64)
+    np.testing.assert_allclose(data.keypoints, to_input_pixels(data.image_keypoints, factors))
+    np.testing.assert_allclose(data.to_image_pixels(data.keypoints), data.image_keypoints)
+    assert len(load_keypoint_set(tiny_dataset, "test", 64, limit=1)) == 1
+
+
+@pytest.mark.parametrize(
+    "args, error, message",
+    [
+        (("nowhere", "train", 64), FileNotFoundError, "data: no dataset folder"),
+        ((None, "dev", 64), ValueError, "split: expected one of"),
+        ((None, "train", 0), ValueError, "input_size: expected a positive integer"),
+    ],
+)
+def test_keypoint_set_bad_input(tiny_dataset, args, error, message):
+    args = (tiny_dataset if args[0] is None else args[0], *args[1:])
+    with pytest.raises(error, match=message):
+        load_keypoint_set(*args)
+
+
+def test_gaussian_targets_sum_to_one_and_peak_at_the_keypoint():
+    kp = torch.tensor([[[20.0, 30.0], [5.4, 60.2]]])
+    g = heatmap_targets(kp, 64, sigma=1.0)
+    torch.testing.assert_close(g.sum((-2, -1)), torch.ones(1, 2))
+    flat = g.flatten(2).argmax(-1)
+    assert (flat % 64).tolist() == [[20, 5]] and (flat // 64).tolist() == [[30, 60]]
+
+
+def test_loss_is_zero_at_the_target_and_ignores_unweighted_keypoints():
+    kp = torch.tensor([[[20.0, 30.0], [40.0, 10.0]]])
+    logits = torch.log(heatmap_targets(kp, 64, 1.0).clamp_min(1e-30))
+    ones, first = torch.ones(1, 2), torch.tensor([[1.0, 0.0]])
+    assert heatmap_loss(logits, kp, ones, 1.0) < 1e-5
+    wrong = logits.clone()
+    wrong[0, 1] = logits[0, 0]  # channel 1 peaks at keypoint 0
+    assert heatmap_loss(wrong, kp, ones, 1.0) > 1.0
+    assert heatmap_loss(wrong, kp, first, 1.0) < 1e-5
+    assert heatmap_loss(wrong, kp, ones, 1.0, dsnt_weight=1.0) > heatmap_loss(wrong, kp, ones, 1.0)
+
+
+def test_pck_counts_weighted_keypoints():
+    truth = np.zeros((1, 4, 2))
+    pred = np.array([[[0.5, 0], [1.5, 0], [3, 0], [9, 9]]])
+    out = pck(pred, truth, np.array([[1, 1, 1, 0]]))
+    assert out == {"pck@1": 1 / 3, "pck@2": 2 / 3, "pck@4": 1.0, "mean_error": 5 / 3}
+
+
+def test_training_lowers_the_loss_and_writes_a_checkpoint(checkpoint):
+    backbone, state = load_checkpoint(checkpoint)
+    losses = [row["loss"] for row in state["history"]]
+    assert len(losses) == 3 and losses[-1] < losses[0]
+    assert state["config"] == vars(TINY) | {} and state["epoch"] == 3
+    assert {"val_pck@2", "val_mean_error", "seconds"} <= set(state["history"][-1])
+    assert not backbone.training
+    for key, value in backbone.state_dict().items():
+        assert torch.equal(value, state["model"][key])
+
+
+def test_a_finished_checkpoint_is_returned_and_another_config_refused(checkpoint, tiny_dataset):
+    before = checkpoint.read_bytes()
+    state = train(tiny_dataset, checkpoint, TINY, progress=False)
+    assert state["epoch"] == 3 and checkpoint.read_bytes() == before
+    with pytest.raises(ValueError, match=r"another configuration \(epochs differ\)"):
+        train(tiny_dataset, checkpoint, TrainConfig(**(vars(TINY) | {"epochs": 5})))
+
+
+def test_an_interrupted_run_resumes_to_the_same_weights(tiny_dataset, tmp_path, monkeypatch):
+    config = TrainConfig(**(vars(TINY) | {"epochs": 2}))
+    whole = train(tiny_dataset, tmp_path / "whole.pt", config, progress=False)
+
+    save = train_module._save
+
+    def save_then_crash(path, state):
+        save(path, state)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "_save", save_then_crash)
+    with pytest.raises(KeyboardInterrupt):
+        train(tiny_dataset, tmp_path / "cut.pt", config, progress=False)
+    monkeypatch.setattr(train_module, "_save", save)
+    assert torch.load(tmp_path / "cut.pt", weights_only=True)["epoch"] == 1
+    resumed = train(tiny_dataset, tmp_path / "cut.pt", config, progress=False)
+    assert [r["loss"] for r in resumed["history"]] == [r["loss"] for r in whole["history"]]
+    for key, value in whole["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value)
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [(b"not a checkpoint", "checkpoint: cannot read"), (None, "checkpoint: no file")],
+)
+def test_bad_checkpoints_are_named(tmp_path, content, message):
+    path = tmp_path / "bad.pt"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises((ValueError, FileNotFoundError), match=message):
+        load_checkpoint(path)
+
+
+def test_bad_config_is_named():
+    with pytest.raises(ValueError, match="backbone: expected one of"):
+        TrainConfig(backbone="vgg")
+    with pytest.raises(ValueError, match="epochs: expected a positive integer"):
+        TrainConfig(epochs=0)
+    with pytest.raises(ValueError, match="sigma: expected a positive number"):
+        TrainConfig(sigma=0.0)
+
+
+def test_ground_truth_keypoints_give_the_ground_truth_pose(tiny_dataset):
+    data = load_keypoint_set(tiny_dataset, "test", 64)
+    errors = pose_errors(data.points_3d, data.image_keypoints, data.K, data.R, data.t)
+    assert errors.shape == (2, 6) and errors.max() < 1e-4
+    assert inside(errors, 0.5).all()
+    assert not inside(np.array([[0, 0, 10.1, 0, 0, 0], [0, 0, 0, 0, 0, 19.9]]), 1.0)[0]
+    clustered = 80 + np.random.default_rng(0).normal(0, 1e-4, data.image_keypoints.shape)
+    assert np.isinf(pose_errors(data.points_3d, clustered, data.K, data.R, data.t)).all()
+
+
+def test_evaluate_reports_both_heads(checkpoint, tiny_dataset):
+    summary, per_image = evaluate(checkpoint, tiny_dataset, "test")
+    assert summary["head"].tolist() == ["argmax", "dsnt"]
+    for column in ("pck@1", "pck@2", "pck@4", "inside_xi@0.5", "inside_xi@1", "inside_xi@2"):
+        assert summary[column].between(0, 1).all()
+    assert (summary["pck@1"] <= summary["pck@2"]).all() and (
+        summary["pck@2"] <= summary["pck@4"]
+    ).all()
+    assert len(per_image) == 4 and {"roll", "tz", "inside_xi@1.5"} <= set(per_image)
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "kpstudy", *args], capture_output=True, text=True)
+
+
+def test_cli_train_and_evaluate(tiny_dataset, tmp_path):
+    ckpt = tmp_path / "c.pt"
+    proc = _cli(
+        "train",
+        "--data",
+        str(tiny_dataset),
+        "--epochs",
+        "1",
+        "--images",
+        "4",
+        "--batch-size",
+        "4",
+        "--out",
+        str(ckpt),
+        "--threads",
+        "1",
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert '"epoch": 1' in proc.stdout and ckpt.is_file()
+    proc = _cli(
+        "evaluate",
+        "--checkpoint",
+        str(ckpt),
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(tmp_path / "eval"),
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "pck@2" in (tmp_path / "eval.md").read_text()
+    assert (tmp_path / "eval_images.csv").is_file()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["train", "--data", "nowhere", "--out", "{tmp}/x.pt"], "data: no dataset folder"),
+        (
+            ["train", "--data", "{data}", "--out", "{tmp}/x.pt", "--backbone", "vgg"],
+            "backbone: expected",
+        ),
+        (["train", "--data", "{data}", "--out", "{tmp}/x.pt", "--epochs", "0"], "epochs: expected"),
+        (["evaluate", "--checkpoint", "{tmp}/none.pt", "--data", "{data}"], "checkpoint: no file"),
+    ],
+)
+def test_cli_bad_input_exits_2_and_writes_nothing(tiny_dataset, tmp_path, args, message):
+    args = [a.format(tmp=tmp_path, data=tiny_dataset) for a in args]
+    proc = _cli(*args)
+    assert proc.returncode == 2 and message in proc.stderr
+    assert list(tmp_path.iterdir()) == []
