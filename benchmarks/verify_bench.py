@@ -1,7 +1,8 @@
 """Verification of the paper-sized CNN proxy over convex hulls: ours vs the parallelotope.
 
 The backbone is :class:`kpstudy.models.HeatmapCNN` (64×64×3 → 23 heatmaps 64×64, 6.6e5
-parameters): loaded from ``--checkpoint`` when given, otherwise a seeded random
+parameters): loaded from ``--checkpoint`` (``python -m kpstudy train``) when given, with
+the test images of ``--data`` as seeds; otherwise a seeded random
 initialisation with batch-norm statistics calibrated on smooth random images (labelled
 ``"model": "random-init+bn-calibrated"``: its heatmaps have no trained peaks, so the
 figures measure the verifier's machinery, not the paper's instances).
@@ -27,8 +28,10 @@ import torch
 import torch.nn.functional as F
 
 from benchmarks.common import emit, timed
+from kpstudy.data import load_keypoint_set
 from kpstudy.models import HeatmapCNN, build_proxy
 from kpstudy.pooling import keypoint_pooling
+from kpstudy.train import load_checkpoint
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
 
 
@@ -50,14 +53,15 @@ def brightness(x: torch.Tensor, b: float) -> torch.Tensor:
     return (x + b / 255.0).clamp(0.0, 1.0)
 
 
-def instances(net, count: int, ms, seed: int, perturbation: str = "occlusion"):
+def instances(net, count: int, ms, seed: int, perturbation: str = "occlusion", images=None):
     """``count`` seeds × hull sizes: (m, proxy, spec, vertices). Occlusion hulls have
     ``m`` in ``ms`` occluded copies; brightness hulls are ``[x, x + b, x − b]`` for
-    ``b`` = 1, 2 (labelled m = b)."""
+    ``b`` = 1, 2 (labelled m = b). Seeds are ``images`` ``(N, 3, 64, 64)`` in [0, 1] when
+    given, else smooth random images."""
     g = torch.Generator().manual_seed(seed)
     out = []
-    for _ in range(count):
-        x0 = seed_image(g)
+    for i in range(count):
+        x0 = seed_image(g) if images is None else images[i]
         with torch.no_grad():
             idx = net(x0[None])[0].flatten(1).argmax(1)
         centers = torch.stack([idx % 64, idx // 64], 1).tolist()
@@ -104,7 +108,8 @@ def _peak_mib() -> float:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--checkpoint", type=Path, help="HeatmapCNN state_dict (.pt)")
+    ap.add_argument("--checkpoint", type=Path, help="a CNN checkpoint of python -m kpstudy train")
+    ap.add_argument("--data", type=Path, help="dataset whose test images are the seeds")
     ap.add_argument("--seeds", type=int, default=4, help="seed images")
     ap.add_argument("--methods", nargs="+", default=["forward", "ibp"])
     ap.add_argument("--timeout", type=float, default=60.0)
@@ -112,13 +117,17 @@ def main(argv=None):
     ap.add_argument("--perturbation", choices=["occlusion", "brightness"], default="occlusion")
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
-    net = HeatmapCNN(23)
     if args.checkpoint:
-        net.load_state_dict(torch.load(args.checkpoint, map_location="cpu"))
+        net, _ = load_checkpoint(args.checkpoint)
     else:
+        net = HeatmapCNN(23)
         calibrate_batch_norm(net, args.seed)
     net.eval()
-    cases = instances(net, args.seeds, (2, 3, 4), args.seed, args.perturbation)
+    images = None
+    if args.data:
+        data = load_keypoint_set(args.data, "test", 64, limit=args.seeds)
+        images = torch.from_numpy(data.images).permute(0, 3, 1, 2) / 255.0
+    cases = instances(net, args.seeds, (2, 3, 4), args.seed, args.perturbation, images)
     rows = []
     for set_type in (ConvexHull, Parallelotope):
         for method in args.methods:
@@ -155,6 +164,7 @@ def main(argv=None):
         "verify_cnn_proxy",
         {
             "model": str(args.checkpoint) if args.checkpoint else "random-init+bn-calibrated",
+            "seeds": str(args.data) if args.data else "smooth random images",
             "perturbation": args.perturbation,
             "parameters": sum(p.numel() for p in net.parameters()),
             "spec_rows": cases[0][2].n_rows,

@@ -45,7 +45,7 @@ class TrainConfig:
     """
 
     backbone: str = "cnn"
-    epochs: int = 40
+    epochs: int = 16
     batch_size: int = 32
     lr: float = 3e-3
     weight_decay: float = 1e-4

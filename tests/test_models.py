@@ -212,10 +212,11 @@ def test_target_model_heads():
         TargetModel(net, "mean")
 
 
-@pytest.mark.parametrize("which", ["backbone", "proxy"])
+@pytest.mark.parametrize("which", ["backbone", "proxy", "resnet18"])
 def test_onnx_export_matches_torch(tmp_path, which):
     torch.manual_seed(0)
-    net = build_backbone("cnn").eval()
+    net = build_backbone("resnet18" if which == "resnet18" else "cnn").eval()
+    x = torch.rand(1, 3, net.input_size, net.input_size)
     if which == "proxy":
         centers = [(5 + 2 * k, 60 - 2 * k) for k in range(23)]
         net = build_proxy(
@@ -223,7 +224,6 @@ def test_onnx_export_matches_torch(tmp_path, which):
             keypoint_pooling(centers, [(k % 4, 3 - k % 4) for k in range(23)], (64, 64)),
             centers,
         )
-    x = torch.rand(1, 3, 64, 64)
     path = export_onnx(net, x, tmp_path / f"{which}.onnx")
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (y,) = session.run(None, {"x": x.numpy()})
