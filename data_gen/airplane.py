@@ -1063,4 +1063,3 @@ def save_airplane(airplane: Airplane, directory) -> tuple[Path, Path]:
     write_bytes_atomic(mesh_path, airplane.mesh.export(file_type="ply"))
     write_text_atomic(json_path, json.dumps(document, indent=1) + "\n")
     return mesh_path, json_path
-

@@ -45,7 +45,7 @@ class TrainConfig:
     """
 
     backbone: str = "cnn"
-    epochs: int = 16
+    epochs: int = 20
     batch_size: int = 32
     lr: float = 3e-3
     weight_decay: float = 1e-4
@@ -152,12 +152,12 @@ def train(
     state = _resume(out, config)
     if state is not None and state["epoch"] >= config.epochs:
         return state
-    torch.manual_seed(config.seed)  # the initial weights
-    backbone = build_backbone(config.backbone)
-    size = backbone.input_size
+    size = BACKBONES[config.backbone].input_size
     train_set = load_keypoint_set(data_dir, "train", size, limit=config.images)
     val_set = load_keypoint_set(data_dir, "val", size)
     dataset = _describe(data_dir, train_set, val_set)
+    torch.manual_seed(config.seed)  # the initial weights
+    backbone = build_backbone(config.backbone, len(train_set.keypoint_names))
     if state is not None and state["dataset"] != dataset:
         raise ValueError(f"data: {data_dir} is not the dataset checkpoint {out} was trained on")
     try:

@@ -16,7 +16,8 @@ class HeatmapBackbone(nn.Sequential):
     heatmap_size: int
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not (is_fx_symbolic_tracing() or torch.jit.is_tracing() or torch.compiler.is_compiling()):
+        tracing = is_fx_symbolic_tracing() or torch.jit.is_tracing()
+        if not (tracing or torch.compiler.is_compiling()):
             s = self.input_size
             if not isinstance(x, torch.Tensor) or x.ndim != 4 or tuple(x.shape[1:]) != (3, s, s):
                 got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
