@@ -53,7 +53,9 @@ def brightness(x: torch.Tensor, b: float) -> torch.Tensor:
     return (x + b / 255.0).clamp(0.0, 1.0)
 
 
-def instances(net, count: int, ms, seed: int, perturbation: str = "occlusion", images=None):
+def instances(
+    net, count: int, ms, seed: int, perturbation: str = "occlusion", images=None, square: int = 10
+):
     """``count`` seeds × hull sizes: (m, proxy, spec, vertices). Occlusion hulls have
     ``m`` in ``ms`` occluded copies; brightness hulls are ``[x, x + b, x − b]`` for
     ``b`` = 1, 2 (labelled m = b). Seeds are ``images`` ``(N, 3, 64, 64)`` in [0, 1] when
@@ -77,7 +79,9 @@ def instances(net, count: int, ms, seed: int, perturbation: str = "occlusion", i
                 out.append((b, proxy, spec, V))
             continue
         for m in ms:
-            out.append((m, proxy, spec, torch.stack([x0] + [occluded(x0, g) for _ in range(m)])))
+            out.append(
+                (m, proxy, spec, torch.stack([x0] + [occluded(x0, g, square) for _ in range(m)]))
+            )
     return out
 
 
@@ -114,6 +118,7 @@ def main(argv=None):
     ap.add_argument("--methods", nargs="+", default=["forward", "ibp"])
     ap.add_argument("--timeout", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--square", type=int, default=10, help="occluding square side, pixels")
     ap.add_argument("--perturbation", choices=["occlusion", "brightness"], default="occlusion")
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
@@ -127,7 +132,7 @@ def main(argv=None):
     if args.data:
         data = load_keypoint_set(args.data, "test", 64, limit=args.seeds)
         images = torch.from_numpy(data.images).permute(0, 3, 1, 2) / 255.0
-    cases = instances(net, args.seeds, (2, 3, 4), args.seed, args.perturbation, images)
+    cases = instances(net, args.seeds, (2, 3, 4), args.seed, args.perturbation, images, args.square)
     rows = []
     for set_type in (ConvexHull, Parallelotope):
         for method in args.methods:
@@ -166,6 +171,7 @@ def main(argv=None):
             "model": str(args.checkpoint) if args.checkpoint else "random-init+bn-calibrated",
             "seeds": str(args.data) if args.data else "smooth random images",
             "perturbation": args.perturbation,
+            "square": args.square,
             "parameters": sum(p.numel() for p in net.parameters()),
             "spec_rows": cases[0][2].n_rows,
             "timeout_seconds": args.timeout,

@@ -60,6 +60,8 @@ def main(argv=None) -> int:
 
 
 def _train(args) -> None:
+    from dataclasses import fields
+
     import torch
 
     from kpstudy.train import TrainConfig, train
@@ -68,19 +70,7 @@ def _train(args) -> None:
         if args.threads < 1:
             raise ValueError(f"threads: expected a positive integer, got {args.threads}")
         torch.set_num_threads(args.threads)
-    config = TrainConfig(
-        backbone=args.backbone,
-        epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        weight_decay=args.weight_decay,
-        sigma=args.sigma,
-        dsnt_weight=args.dsnt_weight,
-        jitter=args.jitter,
-        noise=args.noise,
-        images=args.images,
-        seed=args.seed,
-    )
+    config = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
     state = train(args.data, args.out, config, device=args.device)
     print(json.dumps(state["history"][-1]))
 

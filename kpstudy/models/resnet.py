@@ -43,19 +43,8 @@ class BasicBlock(nn.Module):
 
 
 class HeatmapResNet18(HeatmapBackbone):
-    """Heatmap backbone ``(B, 3, 256, 256) → (B, K, 256, 256)``.
-
-    Parameters
-    ----------
-    keypoints : int
-        Heatmap channels ``K`` (23 for the airliner).
-
-    Examples
-    --------
-    >>> net = HeatmapResNet18(23).eval()
-    >>> net(torch.zeros(1, 3, 256, 256)).shape  # doctest: +SKIP
-    torch.Size([1, 23, 256, 256])
-    """
+    """Heatmap backbone ``(B, 3, 256, 256) → (B, K, 256, 256)`` with ``K = keypoints``
+    (see the module docstring for its layers)."""
 
     input_size = 256
     heatmap_size = 256
