@@ -49,11 +49,22 @@ MAX_BOUND = 4096
 #: is given up).
 _TIGHTEN = 1e-9
 _RHS = 1.0 - _TIGHTEN
+#: HiGHS may restart its search only on models with more values per coordinate than this
+#: (measured on 23 keypoints: without restarts the median MILP time at 64×64 heatmaps
+#: falls from 0.13 to 0.08 s at α = 1; at 256×256 restarts avoid a slow tail).
+_RESTART_ABOVE = 64
 _HIGHS_OPTIONS = {
     "mip_rel_gap": 0.0,
     "mip_abs_gap": 0.0,
     "primal_feasibility_tolerance": 1e-10,
     "mip_feasibility_tolerance": 1e-10,
+    # Search settings only (the optimum stays exact). The greedy point already gives a
+    # close incumbent; sub-MIP heuristics (RINS, RENS) cost more than they save here.
+    # Restarts help only on the large models (values up to 256, the ResNet's heatmaps):
+    # see _RESTART_ABOVE.
+    "mip_heuristic_effort": 0.0,
+    "mip_heuristic_run_rins": False,
+    "mip_heuristic_run_rens": False,
 }
 
 
@@ -191,9 +202,10 @@ def allocate_tolerances(
     if not np.all((lo_t <= x0) & (x0 <= hi_t)):  # numerically inconsistent: no tightening
         lo_t, hi_t = lo, ub
 
-    milp = _problem(n, _bucket(hi_t.max()), "milp")
+    U = _bucket(hi_t.max())
+    milp = _problem(n, U, "milp")
     with _LOCK:
-        x_int, status = _solve(milp, A, lo_t, hi_t, w1, w2)
+        x_int, status = _solve(milp, A, lo_t, hi_t, w1, w2, restart=U > _RESTART_ABOVE)
     if x_int is None or status != cp.OPTIMAL:
         raise RuntimeError(f"allocate_tolerances: the MILP's status is {status!r}")
 
@@ -345,7 +357,7 @@ def _build_relaxation(n: int, U: int) -> _Problem:
     return _Problem(cp.Problem(cp.Maximize(objective), constraints), A, lo, hi, w1, w2, dv, rows)
 
 
-def _solve(p: _Problem, A, lo, hi, w1, w2) -> tuple[np.ndarray | None, str]:
+def _solve(p: _Problem, A, lo, hi, w1, w2, restart=True) -> tuple[np.ndarray | None, str]:
     """Set the parameters and solve with HiGHS (caller holds ``_LOCK``): (δv or None, status)."""
     p.A.value = A
     p.lo.value = lo
@@ -354,7 +366,9 @@ def _solve(p: _Problem, A, lo, hi, w1, w2) -> tuple[np.ndarray | None, str]:
     p.w2.value = w2
     try:
         # warm_start=False: the result must not depend on earlier calls.
-        p.problem.solve(solver=cp.HIGHS, warm_start=False, **_HIGHS_OPTIONS)
+        p.problem.solve(
+            solver=cp.HIGHS, warm_start=False, mip_allow_restart=restart, **_HIGHS_OPTIONS
+        )
     except cp.error.SolverError as exc:
         raise RuntimeError(f"allocate_tolerances: HiGHS failed: {exc}") from exc
     x = p.dv.value

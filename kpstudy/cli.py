@@ -1,4 +1,4 @@
-"""Command line: ``python -m kpstudy reproduce|train|evaluate``. Bad arguments exit with
+"""Command line: ``python -m kpstudy reproduce|train|evaluate|campaign``. Bad arguments exit with
 status 2 and a message naming the argument."""
 
 from __future__ import annotations
@@ -42,6 +42,22 @@ def main(argv=None) -> int:
     ev.add_argument("--data", required=True, help="dataset folder")
     ev.add_argument("--split", default="test", help="train, val or test (default)")
     ev.add_argument("--out", help="write OUT.csv and OUT.md (summary), OUT_images.csv")
+
+    ca = sub.add_parser("campaign", help="certify a grid of seed images' hulls (resumable)")
+    ca.add_argument("--checkpoint", required=True)
+    ca.add_argument("--data", required=True, help="dataset folder with perturbations/")
+    ca.add_argument("--kind", required=True, help="objects, blocks, brightness or contrast")
+    ca.add_argument("--store", required=True, help="SQLite result store; resumed when it exists")
+    ca.add_argument("--alphas", type=float, nargs="+", default=[1.0])
+    ca.add_argument("--kappas", type=float, nargs="+", default=[1.0])
+    ca.add_argument("--ms", type=int, nargs="+", default=[2], help="hull sizes (local kinds)")
+    ca.add_argument("--levels", type=float, nargs="+", help="b or c (global kinds; default all)")
+    ca.add_argument("--seeds", type=int, help="first N seed images (default all)")
+    ca.add_argument("--timeout", type=float, default=60.0, help="seconds per instance")
+    ca.add_argument("--method", default="auto", help="auto, ibp, forward or crown")
+    ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
+    ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
+    ca.add_argument("--out", help="also write the records as OUT.csv and OUT.md")
     args = parser.parse_args(argv)
 
     try:
@@ -52,8 +68,10 @@ def main(argv=None) -> int:
             print(f"results written to {out}")
         elif args.command == "train":
             _train(args)
-        else:
+        elif args.command == "evaluate":
             _evaluate(args)
+        else:
+            _campaign(args)
     except (ValueError, FileNotFoundError) as exc:
         parser.exit(2, f"kpstudy {args.command}: error: {exc}\n")
     return 0
@@ -87,6 +105,28 @@ def _evaluate(args) -> None:
         write_text_atomic(f"{args.out}_images.csv", per_image.to_csv(index=False))
     with pd.option_context("display.width", 200, "display.max_columns", 30):
         print(summary.to_string(index=False))
+
+
+def _campaign(args) -> None:
+    from kpstudy.campaign import Settings, grid, run_campaign
+    from kpstudy.io import write_table
+
+    settings = Settings(args.checkpoint, args.data, args.method, args.timeout)
+    instances = grid(
+        args.data,
+        args.kind,
+        alphas=args.alphas,
+        kappas=args.kappas,
+        ms=args.ms,
+        levels=args.levels,
+        seeds=args.seeds,
+    )
+    frame = run_campaign(
+        instances, args.store, settings, workers=args.workers, scheduler=args.scheduler
+    )
+    if args.out:
+        write_table(frame, args.out)
+    print(frame["status"].value_counts().to_string())
 
 
 if __name__ == "__main__":

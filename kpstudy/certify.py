@@ -1,0 +1,202 @@
+"""One seed image → one verification instance → one record (paper §5, DESIGN.md §1).
+
+:func:`certify` runs the method end to end for a trained backbone, the seed image's
+ground truth and the vertices of a convex hull of perturbed images:
+
+1. nominal pose: OpenCV PnP on the ground-truth keypoints;
+2. sensitivity ``dξ/dv`` at that pose, in heatmap pixels;
+3. optimal integer tolerances ``δv`` (``κ |M| δv ≤ α ε``);
+4. pooling cells of side ``2δv + 1`` centred on the rounded ground-truth keypoints → the
+   proxy network and its spec ("each keypoint's own cell wins");
+5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices.
+
+The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
+pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
+``holds``, how it does on images sampled from the hull: the fraction whose pose error
+lies in Ξ. A proof covers the proxy and the linearised pose model; that fraction shows
+whether the paper's assumptions (argmax ≈ DSNT, first-order PnP) hold on the instance.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from kpstudy import _checks
+from kpstudy.allocation import allocate_tolerances
+from kpstudy.geometry import pose_error
+from kpstudy.models.heads import dsnt_keypoints
+from kpstudy.models.proxy import build_proxy
+from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.pnp import solve_pnp
+from kpstudy.pooling import keypoint_pooling
+from kpstudy.preprocess import normalise, resize_to_input, scale_factors, to_input_pixels
+from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.verify import ConvexHull, verify
+
+__all__ = ["SeedImage", "certify", "target_pose_errors"]
+
+
+@dataclass(frozen=True)
+class SeedImage:
+    """Ground truth of one seed image.
+
+    Attributes
+    ----------
+    image_id : int
+    keypoints : ndarray, (K, 2)
+        Ground-truth ``(u, v)`` in image pixels.
+    K : ndarray, (3, 3)
+        Intrinsics.
+    points_3d : ndarray, (K, 3)
+        Keypoints in the object frame, metres.
+    image_size : (int, int)
+        ``(W, H)`` of the rendered image.
+    """
+
+    image_id: int
+    keypoints: np.ndarray
+    K: np.ndarray
+    points_3d: np.ndarray
+    image_size: tuple[int, int]
+
+    @classmethod
+    def from_keypoint_set(cls, data, index: int) -> SeedImage:
+        """Image ``index`` of a :class:`kpstudy.data.KeypointSet`."""
+        return cls(
+            int(data.image_ids[index]),
+            data.image_keypoints[index],
+            data.K[index],
+            data.points_3d,
+            tuple(data.image_size),
+        )
+
+
+def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImage, R, t):
+    """Pose errors ``(B, 6)`` (degrees, metres) of softmax → DSNT → PnP on ``images``
+    ``(B, 3, s, s)`` (normalised model inputs) against the pose ``(R, t)``; ``inf`` where
+    PnP rejects the keypoints."""
+    with torch.no_grad():
+        uv = dsnt_keypoints(backbone(images).float()).double().numpy()  # heatmap pixels
+    factors = np.asarray(scale_factors(seed.image_size, backbone.input_size))
+    image_uv = (uv + 0.5) / factors - 0.5
+    out = np.full((len(uv), 6), np.inf)
+    for i, v in enumerate(image_uv):
+        try:
+            R_hat, t_hat = solve_pnp(seed.points_3d, v, seed.K, init=(R, t))
+        except ValueError:
+            continue
+        out[i] = np.concatenate(pose_error(R_hat, t_hat, R, t))
+    return out
+
+
+def certify(
+    backbone: nn.Module,
+    vertices,
+    seed: SeedImage,
+    *,
+    alpha: float = 1.0,
+    kappa: float = 1.0,
+    w1: float = 1.0,
+    w2: float = 5.0,
+    method: str = "auto",
+    timeout: float = 60.0,
+    check_samples: int = 200,
+    sample_seed: int = 0,
+) -> dict:
+    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
+
+    Parameters
+    ----------
+    backbone : nn.Module
+        Trained heatmap backbone (eval mode) with ``input_size`` and ``heatmap_size``.
+    vertices : ndarray, (n+1, H, W, 3)
+        The seed image first, then the perturbed images, values in [0, 255], at the
+        render's resolution or already at the model input (they are resized by F0).
+    seed : SeedImage
+        The seed image's ground truth.
+    alpha, kappa, w1, w2 : float
+        Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
+        allocation weights.
+    method, timeout :
+        Passed to :func:`kpstudy.verify.verify` (seconds).
+    check_samples : int
+        For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
+    sample_seed : int
+
+    Returns
+    -------
+    dict
+        ``image_id``, ``n`` (perturbed vertices), ``status`` (``holds`` / ``violated`` /
+        ``unknown``), ``time`` (verification, s), ``total_time`` (s), ``nodes``,
+        ``group_status`` (per keypoint), ``dv`` (K × [δu, δv], heatmap px), ``delta``,
+        ``objective``, ``seed_error`` (6 pose errors of the target model on the seed,
+        degrees and metres), ``seed_inside`` (that error lies in Ξ), ``counterexample``
+        (λ or None), ``empirical_inside`` (fraction of sampled hull images whose target
+        pose error lies in Ξ; None unless ``holds``), ``empirical_samples``.
+    """
+    start = time.perf_counter()
+    alpha = float(_checks.positive(alpha, "alpha"))
+    kappa = float(_checks.positive(kappa, "kappa"))
+    if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
+        raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
+    for name in ("input_size", "heatmap_size"):
+        if not hasattr(backbone, name):
+            raise ValueError(f"backbone: expected a kpstudy backbone with .{name}")
+    vertices = np.asarray(vertices)
+    if vertices.ndim != 4 or vertices.shape[-1] != 3 or len(vertices) < 2:
+        raise ValueError(
+            f"vertices: expected (n+1, H, W, 3) images with n >= 1, got shape {vertices.shape}"
+        )
+    s, hm = backbone.input_size, backbone.heatmap_size
+    P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
+    eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+
+    R, t = solve_pnp(P, V, K)
+    factors = scale_factors(seed.image_size, hm)
+    M = pose_sensitivity(P, V, K, R, t, scale=factors)
+    allocation = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
+    centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
+    if np.any((centers < 0) | (centers >= hm)):
+        k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
+        raise ValueError(
+            f"seed: keypoint {k} lies outside the {hm}×{hm} heatmap at {centers[k].tolist()} "
+            "(only seeds with every keypoint in the image can be certified)"
+        )
+    proxy = build_proxy(backbone, keypoint_pooling(centers, allocation.dv, (hm, hm)), centers)
+    images = np.stack([resize_to_input(v, s) for v in vertices])
+    x = torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous()
+    hull = ConvexHull(x)
+
+    result = verify(proxy.eval(), hull, proxy.spec, method=method, timeout=timeout)
+    xi = np.concatenate([eps_r, eps_t])
+    seed_error = target_pose_errors(backbone, x[:1], seed, R, t)[0]
+    record = {
+        "image_id": seed.image_id,
+        "n": hull.n,
+        "status": result.status,
+        "time": result.time,
+        "nodes": result.nodes,
+        "group_status": list(result.group_status),
+        "dv": allocation.dv.tolist(),
+        "delta": allocation.delta,
+        "objective": allocation.objective,
+        "seed_error": seed_error.tolist(),
+        "seed_inside": bool(np.all(seed_error <= xi)),
+        "counterexample": (
+            None if result.counterexample is None else result.counterexample.point.tolist()
+        ),
+        "empirical_inside": None,
+        "empirical_samples": 0,
+    }
+    if result.status == "holds" and check_samples:
+        lam = hull.sample(int(check_samples), sample_seed)
+        errors = target_pose_errors(backbone, hull.image(lam), seed, R, t)
+        record["empirical_inside"] = float(np.mean(np.all(errors <= xi, axis=1)))
+        record["empirical_samples"] = int(check_samples)
+    record["total_time"] = time.perf_counter() - start
+    return record

@@ -1,0 +1,184 @@
+"""kpstudy.certify and kpstudy.campaign on a rendered tiny dataset and a tiny trained CNN."""
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from data_gen.perturb import hull_vertices, make_perturbations
+from kpstudy.campaign import Instance, ResultStore, Settings, grid, run_campaign, run_instance
+from kpstudy.certify import SeedImage, certify
+from kpstudy.data import load_keypoint_set
+from kpstudy.train import TrainConfig, load_checkpoint, train
+
+
+@pytest.fixture(scope="module")
+def study(tiny_dataset, tmp_path_factory):
+    """A copy of the tiny dataset with block and brightness perturbations, and a CNN."""
+    data = tmp_path_factory.mktemp("study") / "data"
+    shutil.copytree(tiny_dataset, data)
+    for kind in ("blocks", "brightness"):
+        make_perturbations(data, kind, seeds=2, seed=0, input_size=64)
+    checkpoint = data.parent / "cnn.pt"
+    train(data, checkpoint, TrainConfig(epochs=2, batch_size=4, images=8, seed=1), progress=False)
+    return data, checkpoint
+
+
+def _seed(data_dir, index=0):
+    return SeedImage.from_keypoint_set(load_keypoint_set(data_dir, "test", 64), index)
+
+
+def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    # α = 1e4: every tolerance reaches the heatmap size: one cell per keypoint, nothing to beat.
+    record = certify(backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=16)
+    assert record["status"] == "holds"
+    assert np.all(np.asarray(record["dv"]) == 64)
+    assert record["group_status"] == ["holds"] * 23
+    assert record["empirical_samples"] == 16
+    assert 0.0 <= record["empirical_inside"] <= 1.0
+    assert len(record["seed_error"]) == 6 and isinstance(record["seed_inside"], bool)
+
+
+def test_a_violated_instance_carries_a_point_of_the_hull(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
+    record = certify(backbone, vertices, seed, alpha=0.5, timeout=30, check_samples=4)
+    # A two-epoch network misses most keypoints' cells even on the seed image.
+    assert record["status"] == "violated"
+    lam = np.asarray(record["counterexample"])
+    assert lam.shape == (2,) and np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
+    assert record["empirical_inside"] is None
+    assert "violated" in record["group_status"]
+    assert np.all(np.asarray(record["dv"]) <= 64) and record["delta"] == min(
+        min(r) for r in record["dv"]
+    )
+
+
+def test_certify_bad_input_is_named(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    good = hull_vertices(data, seed.image_id, "brightness", level=1.0)
+    with pytest.raises(ValueError, match="alpha"):
+        certify(backbone, good, seed, alpha=0.0)
+    with pytest.raises(ValueError, match="vertices"):
+        certify(backbone, good[:1], seed)
+    with pytest.raises(ValueError, match="check_samples"):
+        certify(backbone, good, seed, check_samples=-1)
+    with pytest.raises(ValueError, match="backbone"):
+        certify(torch.nn.Identity(), good, seed)
+
+
+def _instances(data):
+    return grid(data, "blocks", alphas=[0.5, 1e4], kappas=[1.0], ms=[2], overlapping=[True])
+
+
+def test_grid_covers_the_axes_and_refuses_bad_parameters(study):
+    data, _ = study
+    instances = _instances(data)
+    assert len(instances) == 2 * 2  # 2 seed images × 2 α
+    assert {(i.alpha, i.m, i.overlapping) for i in instances} == {(0.5, 2, True), (1e4, 2, True)}
+    levels = grid(data, "brightness", alphas=[1.0], kappas=[1.0, 1.5])
+    assert len(levels) == 2 * 2 * 2 and {i.level for i in levels} == {1.0, 2.0}
+    with pytest.raises(ValueError, match="kind"):
+        grid(data, "fog", alphas=[1.0], kappas=[1.0])
+    with pytest.raises(ValueError, match="alphas"):
+        grid(data, "blocks", alphas=[0.0], kappas=[1.0])
+    with pytest.raises(ValueError, match="ms: expected hull sizes 1..4"):
+        grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[5])
+    with pytest.raises(ValueError, match="levels"):
+        grid(data, "brightness", alphas=[1.0], kappas=[1.0], levels=[3.0])
+    with pytest.raises(FileNotFoundError, match="contrast"):
+        grid(data, "contrast", alphas=[1.0], kappas=[1.0])
+
+
+def test_bad_settings_fail_before_any_work(study, tmp_path):
+    data, checkpoint = study
+    instances = _instances(data)
+    bad = [
+        (Settings(str(tmp_path / "missing.pt"), str(data)), "checkpoint"),
+        (Settings(str(checkpoint), str(tmp_path)), "data_dir"),
+        (Settings(str(checkpoint), str(data), method="exact"), "method"),
+        (Settings(str(checkpoint), str(data), timeout=0), "timeout"),
+    ]
+    for settings, name in bad:
+        with pytest.raises((ValueError, FileNotFoundError), match=name):
+            run_campaign(instances, tmp_path / "store.sqlite", settings, progress=False)
+        assert ResultStore(tmp_path / "store.sqlite").keys() == set()
+
+
+def _table(frame):
+    """The records without their timings, as comparable text."""
+    return frame.drop(columns=["time", "total_time"]).to_json(orient="records")
+
+
+def test_a_killed_campaign_resumes_without_recomputing(study, tmp_path):
+    data, checkpoint = study
+    instances = _instances(data)
+    settings = Settings(str(checkpoint), str(data), timeout=20, check_samples=4)
+    straight = run_campaign(instances, tmp_path / "straight.sqlite", settings, progress=False)
+    assert len(straight) == len(instances)
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_two(instance, record, seen=[]):  # noqa: B006
+        seen.append(instance)
+        if len(seen) == 2:
+            raise Killed
+
+    store = tmp_path / "killed.sqlite"
+    with pytest.raises(Killed):
+        run_campaign(instances, store, settings, progress=False, on_record=kill_after_two)
+    assert len(ResultStore(store).keys()) == 2
+    computed = []
+    resumed = run_campaign(
+        instances, store, settings, progress=False, on_record=lambda i, r: computed.append(i)
+    )
+    assert len(computed) == len(instances) - 2
+    assert _table(resumed) == _table(straight)
+    again = []
+    run_campaign(instances, store, settings, progress=False, on_record=lambda i, r: again.append(i))
+    assert again == []
+
+
+@pytest.mark.slow
+def test_dask_and_process_pool_runs_equal_the_local_run(study, tmp_path):
+    from distributed import LocalCluster
+
+    data, checkpoint = study
+    instances = _instances(data)[:2]
+    settings = Settings(str(checkpoint), str(data), timeout=20, check_samples=4)
+    local = _table(run_campaign(instances, tmp_path / "local.sqlite", settings, progress=False))
+    pool = run_campaign(instances, tmp_path / "pool.sqlite", settings, workers=2, progress=False)
+    assert _table(pool) == local
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None
+    ) as c:
+        dask = run_campaign(
+            instances,
+            tmp_path / "dask.sqlite",
+            settings,
+            scheduler=c.scheduler_address,
+            progress=False,
+        )
+    assert _table(dask) == local
+
+
+def test_run_instance_reports_the_clipped_fraction(study):
+    data, checkpoint = study
+    seed = _seed(data)
+    settings = Settings(str(checkpoint), str(data), timeout=10, check_samples=0)
+    record = run_instance(Instance("brightness", seed.image_id, 1.0, 1.0, level=2.0), settings)
+    assert 0.0 <= record["clipped_fraction"] < 1.0
+    blocks = run_instance(
+        Instance("blocks", seed.image_id, 1.0, 1.0, m=1, overlapping=False), settings
+    )
+    assert blocks["clipped_fraction"] == 0.0
