@@ -5,9 +5,9 @@ overlapping or not, or a brightness/contrast level) and the allocation's ``(α, 
 :func:`run_campaign` certifies every instance of a grid that the :class:`ResultStore`
 does not hold yet and writes each record the moment it arrives, in its own SQLite
 transaction: a crash or Ctrl-C loses at most the instances still running, and a rerun
-computes only what is missing. Workers are local processes (default), the calling
-process (``workers=1``) or a Dask cluster (``scheduler='tcp://…'``); each loads the
-checkpoint and the dataset once.
+computes only what is missing. Instances run in the calling process (default,
+``workers=1``), in ``workers`` local processes or on a Dask cluster
+(``scheduler='tcp://…'``); each worker loads the checkpoint and the dataset once.
 """
 
 from __future__ import annotations
@@ -220,8 +220,8 @@ def run_campaign(
     if isinstance(workers, bool) or int(workers) != workers or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
     done = store.keys()
-    todo = [i for i in dict.fromkeys(instances) if i.key not in done]
-    bar = tqdm(total=len(todo), desc="instances", unit="inst", disable=not progress)
+    missing = [i for i in dict.fromkeys(instances) if i.key not in done]
+    bar = tqdm(total=len(missing), desc="instances", unit="inst", disable=not progress)
 
     def finish(instance, record):
         store.put(instance, record)
@@ -230,18 +230,18 @@ def run_campaign(
             on_record(instance, record)
 
     try:
-        if not todo:
+        if not missing:
             pass
         elif scheduler is not None:
             from distributed import Client
             from distributed import as_completed as dask_completed
 
             with Client(scheduler) as client:
-                futures = {client.submit(run_instance, i, settings, pure=False): i for i in todo}
+                futures = {client.submit(run_instance, i, settings, pure=False): i for i in missing}
                 for future in dask_completed(futures):
                     finish(futures[future], future.result())
         elif workers == 1:
-            for instance in todo:
+            for instance in missing:
                 finish(instance, run_instance(instance, settings))
         else:
             threads = max(1, (os.cpu_count() or 1) // int(workers))
@@ -251,7 +251,7 @@ def run_campaign(
                 initializer=_init,
                 initargs=(threads,),
             ) as pool:
-                futures = {pool.submit(run_instance, i, settings): i for i in todo}
+                futures = {pool.submit(run_instance, i, settings): i for i in missing}
                 for future in as_completed(futures):
                     finish(futures[future], future.result())
     finally:
