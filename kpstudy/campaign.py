@@ -298,24 +298,17 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
 
 @functools.lru_cache(maxsize=2)
 def _context(checkpoint: str, data_dir: str):
-    """The backbone and a seed-image lookup, loaded once per process."""
-    from data_gen.dataset import load_coco
+    """The backbone and a seed-image lookup over the test split, loaded once per process."""
     from kpstudy.certify import SeedImage
+    from kpstudy.data import load_keypoint_set
     from kpstudy.train import load_checkpoint
 
     backbone, _ = load_checkpoint(checkpoint)
-    coco = load_coco(data_dir)
-    category = coco["categories"][0]
-    points_3d = np.asarray(category["keypoints_3d"], float)
-    images = {im["id"]: im for im in coco["images"]}
-    annotations = {a["image_id"]: a for a in coco["annotations"]}
+    test = load_keypoint_set(data_dir, "test", backbone.input_size)
+    index = {int(image_id): i for i, image_id in enumerate(test.image_ids)}
 
     def seed_of(image_id: int) -> SeedImage:
-        im, ann = images[image_id], annotations[image_id]
-        kps = np.asarray(ann["keypoints"], float).reshape(-1, 3)[:, :2]
-        return SeedImage(
-            image_id, kps, np.asarray(im["K"], float), points_3d, (im["width"], im["height"])
-        )
+        return SeedImage.from_keypoint_set(test, index[image_id])
 
     return backbone, seed_of
 

@@ -28,13 +28,19 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy.allocation import allocate_tolerances
-from kpstudy.geometry import pose_error
+from kpstudy.evaluate import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import build_proxy
 from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
-from kpstudy.preprocess import normalise, resize_to_input, scale_factors, to_input_pixels
+from kpstudy.preprocess import (
+    normalise,
+    resize_to_input,
+    scale_factors,
+    to_image_pixels,
+    to_input_pixels,
+)
 from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
 
@@ -79,19 +85,18 @@ class SeedImage:
 def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImage, R, t):
     """Pose errors ``(B, 6)`` (degrees, metres) of softmax → DSNT → PnP on ``images``
     ``(B, 3, s, s)`` (normalised model inputs) against the pose ``(R, t)``; ``inf`` where
-    PnP rejects the keypoints."""
+    PnP rejects the keypoints (:func:`kpstudy.evaluate.pose_errors`)."""
     with torch.no_grad():
         uv = dsnt_keypoints(backbone(images).float()).double().numpy()  # heatmap pixels
-    factors = np.asarray(scale_factors(seed.image_size, backbone.input_size))
-    image_uv = (uv + 0.5) / factors - 0.5
-    out = np.full((len(uv), 6), np.inf)
-    for i, v in enumerate(image_uv):
-        try:
-            R_hat, t_hat = solve_pnp(seed.points_3d, v, seed.K, init=(R, t))
-        except ValueError:
-            continue
-        out[i] = np.concatenate(pose_error(R_hat, t_hat, R, t))
-    return out
+    image_uv = to_image_pixels(uv, scale_factors(seed.image_size, backbone.input_size))
+    B = len(uv)
+    return pose_errors(
+        seed.points_3d,
+        image_uv,
+        np.broadcast_to(seed.K, (B, 3, 3)),
+        np.broadcast_to(R, (B, 3, 3)),
+        np.broadcast_to(t, (B, 3)),
+    )
 
 
 def certify(

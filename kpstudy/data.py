@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
+from kpstudy.preprocess import resize_to_input, scale_factors, to_image_pixels, to_input_pixels
 
 SPLITS = ("train", "val", "test")
 
@@ -67,7 +67,7 @@ class KeypointSet:
 
     def to_image_pixels(self, uv) -> np.ndarray:
         """Heatmap pixel coordinates (..., 2) → image pixel coordinates (..., 2)."""
-        return (np.asarray(uv, float) + 0.5) / np.asarray(self.scale) - 0.5
+        return to_image_pixels(uv, self.scale)
 
 
 def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> KeypointSet:

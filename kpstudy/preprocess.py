@@ -43,6 +43,11 @@ def to_input_pixels(uv: np.ndarray, factors) -> np.ndarray:
     return (np.asarray(uv, float) + 0.5) * np.asarray(factors, float) - 0.5
 
 
+def to_image_pixels(uv: np.ndarray, factors) -> np.ndarray:
+    """Input pixel coordinates (..., 2) → image pixel coordinates (..., 2)."""
+    return (np.asarray(uv, float) + 0.5) / np.asarray(factors, float) - 0.5
+
+
 def normalise(images: np.ndarray) -> np.ndarray:
     """[0, 255] → [0, 1] (the network's input scale)."""
     return np.asarray(images, np.float32) / 255.0
