@@ -19,7 +19,7 @@ from data_gen.occluders import FAMILIES, occluder_catalog  # noqa: E402
 from data_gen.patches import PatchRenderer  # noqa: E402
 from data_gen.perturb import KINDS, hull_vertices, load_perturbations  # noqa: E402
 from data_gen.render import Light  # noqa: E402
-from kpstudy.io import atomic_path  # noqa: E402
+from kpstudy.io import save_figure  # noqa: E402
 
 
 def plot_renders(data_dir, count: int = 6, names: bool = True, seed: int = 0) -> plt.Figure:
@@ -140,12 +140,31 @@ def write_gallery(out, data_dir=None) -> list[Path]:
         figures["renders"] = lambda: plot_renders(data_dir)
         if (Path(data_dir) / "perturbations").is_dir():
             figures["perturbations"] = lambda: plot_perturbations(data_dir)
-    paths = []
-    for name, make in figures.items():
-        fig = make()
-        path = out / f"{name}.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=130, format="png")
-        plt.close(fig)
-        paths.append(path)
-    return paths
+    return [save_figure(make(), out / f"{name}.png") for name, make in figures.items()]
+
+
+def dataset_summary(data_dir):
+    """One row per split and per perturbation set: seed images, images, overlapping and
+    non-overlapping images (local kinds) and levels (global kinds)."""
+    import pandas as pd
+
+    coco = load_coco(data_dir)
+    rows = []
+    for split in ("train", "val", "test"):
+        n = sum(im.get("split") == split for im in coco["images"])
+        rows.append(dict(set=f"{split} split", seeds=None, images=n))
+    for kind in KINDS:
+        if not (Path(data_dir) / "perturbations" / kind / "meta.json").is_file():
+            continue
+        meta = load_perturbations(data_dir, kind)["images"]
+        row = dict(set=f"{kind} perturbations", seeds=len({r["image_id"] for r in meta}),
+                   images=len(meta))
+        if kind in ("objects", "blocks"):
+            row["overlapping"] = sum(bool(r["overlapping"]) for r in meta)
+            row["non_overlapping"] = len(meta) - row["overlapping"]
+        else:
+            row["levels"] = ", ".join(f"{v:g}" for v in sorted({r["level"] for r in meta}))
+        rows.append(row)
+    columns = ["set", "seeds", "images", "overlapping", "non_overlapping", "levels"]
+    frame = pd.DataFrame(rows, columns=columns)
+    return frame.astype({c: "Int64" for c in columns[1:5]})

@@ -385,6 +385,23 @@ def hull_vertices(
     return np.stack([first, *rest])
 
 
+def perturbed_images(data_dir, kind: str, input_size: int, *, limit: int | None = None):
+    """Every perturbed image of a set (at most ``limit``), resized to the model input.
+
+    Returns ``(images (N, s, s, 3) float32 in [0, 255], rows)``, ``rows`` being the
+    matching entries of ``meta.json`` (image id, overlapping or level, …).
+    """
+    data_dir = Path(data_dir)
+    rows = load_perturbations(data_dir, kind)["images"][:limit]
+    folder = data_dir / "perturbations" / kind
+    images = []
+    for r in rows:
+        path = folder / r["file"]
+        image = read_image(path).astype(np.float32) if kind == "objects" else np.load(path)
+        images.append(resize_to_input(image, input_size))
+    return np.stack(images), rows
+
+
 def _tuples(scene: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in scene.items()}
 

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-__all__ = ["Instance", "ResultStore", "Settings", "grid", "run_campaign"]
+__all__ = ["Instance", "ResultStore", "Settings", "grid", "run_campaign", "store_path"]
 
 GLOBAL_KINDS = ("brightness", "contrast")
 LOCAL_KINDS = ("objects", "blocks")
@@ -187,6 +187,23 @@ class ResultStore:
         keys = list(stored) if instances is None else [i.key for i in instances if i.key in stored]
         rows = [{**json.loads(k), **json.loads(stored[k])} for k in keys]
         return pd.DataFrame(rows)
+
+
+def store_path(folder, name: str, settings: Settings) -> Path:
+    """``folder/<name>-<fingerprint>.sqlite``, the fingerprint hashing the checkpoint's
+    bytes, the dataset's annotations and perturbation sets and the other settings: records
+    of a retrained model or of other settings never mix with these."""
+    import hashlib
+
+    _check_settings(settings)
+    digest = hashlib.sha256()
+    data = Path(settings.data_dir)
+    for path in [Path(settings.checkpoint), data / "annotations.json",
+                 *sorted(data.glob("perturbations/*/meta.json"))]:
+        digest.update(path.read_bytes())
+    rest = {k: v for k, v in asdict(settings).items() if k not in ("checkpoint", "data_dir")}
+    digest.update(json.dumps(rest, sort_keys=True).encode())
+    return Path(folder) / f"{name}-{digest.hexdigest()[:12]}.sqlite"
 
 
 def run_campaign(

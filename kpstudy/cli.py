@@ -14,8 +14,13 @@ def main(argv=None) -> int:
     rep = sub.add_parser("reproduce", help="run the study's stages and write results/<profile>/")
     rep.add_argument("--profile", default="quick", help="quick (default) or paper")
     rep.add_argument("--out", default="results", help="results root folder")
-    rep.add_argument("--images", type=int, help="override the profile's number of images")
-    rep.add_argument("--samples", type=int, help="override the Monte Carlo samples per image")
+    rep.add_argument("--images", type=int, help="override T-prob's number of views")
+    rep.add_argument("--samples", type=int, help="override the Monte Carlo samples per view")
+    rep.add_argument("--seeds", type=int, help="override the seed images per campaign")
+    rep.add_argument("--timeout", type=float, help="override the seconds per CNN instance")
+    rep.add_argument("--workers", type=int, help="local processes per campaign")
+    rep.add_argument("--stages", nargs="+", help="data, train, notebooks, report (default all)")
+    rep.add_argument("--scheduler", help="Dask scheduler address for the campaigns")
 
     from kpstudy.train import TrainConfig
 
@@ -62,9 +67,13 @@ def main(argv=None) -> int:
 
     try:
         if args.command == "reproduce":
-            from kpstudy.reproduce import reproduce
+            from kpstudy.reproduce import STAGES, profile, reproduce
 
-            out = reproduce(args.profile, args.out, images=args.images, samples=args.samples)
+            prof = profile(
+                args.profile, images=args.images, samples=args.samples, seeds=args.seeds,
+                timeout=args.timeout, workers=args.workers,
+            )
+            out = reproduce(prof, args.out, stages=args.stages or STAGES, scheduler=args.scheduler)
             print(f"results written to {out}")
         elif args.command == "train":
             _train(args)

@@ -196,6 +196,40 @@ def symmetry_indicators(
     )
 
 
+def backbone_heatmaps(backbone, images, batch_size: int = 16) -> torch.Tensor:
+    """Unnormalised heatmaps ``(N, K, H, W)`` float32 of preprocessed images ``(N, s, s, 3)``
+    in [0, 255] (the backbone's input size), computed in eval mode in batches."""
+    from kpstudy.preprocess import normalise
+
+    images = np.asarray(images, np.float32)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected (N, s, s, 3) images, got shape {images.shape}")
+    backbone.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(images), batch_size):
+            x = torch.from_numpy(normalise(images[i : i + batch_size])).permute(0, 3, 1, 2)
+            out.append(backbone(x.contiguous()).float())
+    return torch.cat(out)
+
+
+def summarise_indicators(frames) -> pd.DataFrame:
+    """Per group and axis, the median and 90th percentile of each indicator's magnitude
+    (``|skewness|``, ``|mean − median|``, ``|mean − mode|`` and the IQR), from
+    :func:`symmetry_indicators` frames ``{group: frame}``."""
+    rows = []
+    for name, df in frames.items():
+        for axis in ("u", "v"):
+            part = df[df["axis"] == axis]
+            row = {"group": name, "axis": axis, "maps": len(part)}
+            for col, _, _ in _PANELS:
+                values = part[col].abs().dropna()
+                row[f"{col}_median"] = float(values.median())
+                row[f"{col}_p90"] = float(values.quantile(0.9))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def plot_indicators(frames):
     """The paper's indicator figure (``fig:indicators``): box plots per indicator and axis.
 

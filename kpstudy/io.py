@@ -50,8 +50,20 @@ def write_table(df: pd.DataFrame, stem) -> tuple[Path, Path]:
     return csv, md
 
 
+def save_figure(fig, path, dpi: int = 130) -> Path:
+    """Save a matplotlib figure as PNG at ``path`` atomically, then close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
 def _markdown(df: pd.DataFrame) -> str:
     def fmt(x):
+        if x is None or x is pd.NA or (isinstance(x, float) and x != x):
+            return "–"
         if isinstance(x, float):
             return f"{x:.6g}"
         return str(x)

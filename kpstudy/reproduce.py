@@ -1,178 +1,333 @@
-"""`python -m kpstudy reproduce`: the study's stages at a chosen scale, results under results/.
+"""`python -m kpstudy reproduce`: the whole study at a chosen scale, results under results/.
 
-Stages so far:
+Stages, in order; each is skipped when its outputs are current:
 
-* **Data** (paper §7.1): a rendered COCO dataset of the airliner (data_gen), the
-  perturbation sets of its test seed images (objects, blocks, brightness, contrast)
-  and the gallery figures (renders, occluders, perturbations). Reused when a run with
-  the same settings already made it.
-* **T-prob** (paper Table 2): probabilistic soundness and completeness of the optimal
-  tolerance allocation over κ × α, on ground-truth keypoints of overhead views of the
-  canonical 23-keypoint airliner (640×400 images, 64×64 heatmaps as for the CNN).
+1. **data** (paper §8.1): the rendered COCO dataset (data_gen), the perturbation sets of
+   its test seed images (objects at the render's resolution, blocks at the ResNet-18
+   input, brightness and contrast at the CNN input). Reused when its settings match.
+2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.train.train`,
+   which resumes an interrupted run and returns a finished one as it is).
+3. **notebooks**: ``notebooks/NN_*.ipynb`` run by papermill with the profile's
+   parameters into ``results/<profile>/notebooks/``. Each writes its tables (CSV and
+   Markdown, the paper's numbers beside ours) under ``tables/`` and its figures under
+   ``figures/``. A notebook reruns only when its parameters or its inputs changed; the
+   verification campaigns inside (06–08) resume from their SQLite stores.
+4. **report**: ``REPORT.md``, every table and figure with a short reading of the trends
+   (:mod:`kpstudy.report`).
 
-Each stage writes CSV and Markdown tables with the paper's numbers beside ours.
+The ``quick`` profile runs everything at reduced counts on 2 CPU cores; ``paper`` has the
+paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and is meant for a
+GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
+from kpstudy.io import write_text_atomic
 
-from data_gen.camera import intrinsics, overhead_poses
-from data_gen.keypoints import airliner_keypoints
-from kpstudy.geometry import project_batch
-from kpstudy.io import write_table, write_text_atomic
-from kpstudy.montecarlo import soundness_completeness_table
-
-#: Paper Table 2 (soundness, completeness) by (κ, α); "<6.67e-9" is entered as 0.
-PAPER_T_PROB = {
-    (1.0, 0.5): (1.0, 1.93e-6),
-    (1.0, 1.0): (0.998978, 3.07e-5),
-    (1.0, 1.5): (0.996596, 4.85e-5),
-    (1.0, 2.0): (0.988339, 6.20e-5),
-    (1.5, 0.5): (1.0, 0.0),
-    (1.5, 1.0): (0.999993, 1.00e-6),
-    (1.5, 1.5): (0.999887, 2.00e-6),
-    (1.5, 2.0): (0.999890, 3.67e-6),
-    (2.0, 0.5): (1.0, 0.0),
-    (2.0, 1.0): (1.0, 0.0),
-    (2.0, 1.5): (1.0, 3.33e-7),
-    (2.0, 2.0): (0.999999, 6.67e-7),
-}
+NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+STAGES = ("data", "train", "notebooks", "report")
 
 
 @dataclass(frozen=True)
 class Profile:
+    """Every count of one run of the study.
+
+    Attributes
+    ----------
+    dataset_images, dataset_size : rendered images and their ``'WxH'`` size.
+    perturbed_seeds : test images that get perturbation sets (the campaigns' seeds).
+    cnn_epochs, resnet_epochs, cnn_images, resnet_images : training length and the most
+        training images used (``None``: all).
+    images, samples : T-prob's overhead views and Monte Carlo samples per view.
+    seeds : seed images per campaign (≤ ``perturbed_seeds``); ``resnet_seeds`` for T-resnet.
+    timeout, resnet_timeout : verification seconds per instance.
+    symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
+    figure_images : seed images of F-sym and F-alloc.
+    workers : local processes per campaign.
+    """
+
     name: str
+    dataset_images: int
+    dataset_size: str
+    perturbed_seeds: int
+    cnn_epochs: int
+    resnet_epochs: int
     images: int
     samples: int
-    kappas: tuple[float, ...] = (1.0, 1.5, 2.0)
-    alphas: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0)
-    image_size: tuple[int, int] = (640, 400)
-    heatmap_size: int = 64
-    hfov_deg: float = 70.0
+    seeds: int
+    resnet_seeds: int
+    timeout: float
+    resnet_timeout: float
+    cnn_images: int | None = None
+    resnet_images: int | None = None
+    symmetry_backbone: str = "cnn"
+    figure_images: int = 50
+    workers: int = 1
     seed: int = 0
-    dataset_images: int = 300
-    dataset_size: str = "640x400"
-    perturbed_seeds: int = 5
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in ("name", "dataset_size", "symmetry_backbone") or value is None:
+                continue
+            if f.name == "seed":
+                continue
+            if isinstance(value, bool) or not value > 0:
+                raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
+        if self.seeds > self.perturbed_seeds or self.resnet_seeds > self.perturbed_seeds:
+            raise ValueError(
+                f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
+                f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
+            )
+        if self.symmetry_backbone not in ("cnn", "resnet18"):
+            raise ValueError(
+                f"symmetry_backbone: expected 'cnn' or 'resnet18', got {self.symmetry_backbone!r}"
+            )
 
 
 PROFILES = {
-    "quick": Profile("quick", images=100, samples=1000),
+    "quick": Profile(
+        "quick",
+        dataset_images=2000,
+        dataset_size="640x400",
+        perturbed_seeds=8,
+        cnn_epochs=16,
+        resnet_epochs=1,
+        resnet_images=256,
+        images=100,
+        samples=1000,
+        seeds=8,
+        resnet_seeds=2,
+        timeout=10.0,
+        resnet_timeout=20.0,
+    ),
     "paper": Profile(
         "paper",
-        images=3000,
-        samples=5000,
         dataset_images=7000,
         dataset_size="1920x1200",
         perturbed_seeds=200,
+        cnn_epochs=20,
+        resnet_epochs=30,
+        images=3000,
+        samples=5000,
+        seeds=200,
+        resnet_seeds=200,
+        timeout=600.0,
+        resnet_timeout=3600.0,
+        symmetry_backbone="resnet18",
+        figure_images=3000,
     ),
 }
 
 
+def profile(name: str, **overrides) -> Profile:
+    """The named profile with some fields replaced (e.g. ``images=10``)."""
+    if name not in PROFILES:
+        raise ValueError(f"profile: expected one of {sorted(PROFILES)}, got {name!r}")
+    known = {f.name for f in fields(Profile)} - {"name"}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"overrides: unknown profile fields {unknown}; expected {sorted(known)}")
+    return replace(PROFILES[name], **{k: v for k, v in overrides.items() if v is not None})
+
+
 def reproduce(
-    profile: str, out_root="results", *, images: int | None = None, samples: int | None = None
+    prof: str | Profile,
+    out_root="results",
+    *,
+    stages=STAGES,
+    scheduler: str | None = None,
+    progress: bool = True,
 ) -> Path:
-    """Run every stage of ``profile`` and return its results folder."""
-    if profile not in PROFILES:
-        raise ValueError(f"profile: expected one of {sorted(PROFILES)}, got {profile!r}")
-    prof = PROFILES[profile]
-    if images is not None or samples is not None:
-        prof = Profile(
-            **{
-                **asdict(prof),
-                "images": prof.images if images is None else images,
-                "samples": prof.samples if samples is None else samples,
-            }
-        )
-    for name, value in (("images", prof.images), ("samples", prof.samples)):
-        if value < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {value}")
+    """Run ``stages`` of the profile and return its results folder ``out_root/<name>``."""
+    prof = profile(prof) if isinstance(prof, str) else prof
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise ValueError(f"stages: expected some of {STAGES}, got {unknown}")
     out = Path(out_root) / prof.name
-    data(prof, out)
-    t_prob(prof, out / "tables")
+    out.mkdir(parents=True, exist_ok=True)
+    timings = {}
+    for stage in STAGES:
+        if stage not in stages:
+            continue
+        start = time.perf_counter()
+        if stage == "data":
+            data(prof, out, progress=progress)
+        elif stage == "train":
+            train_models(prof, out, progress=progress)
+        elif stage == "notebooks":
+            run_notebooks(prof, out, scheduler=scheduler, progress=progress)
+        else:
+            from kpstudy.report import write_report
+
+            write_report(out, asdict(prof))
+        timings[stage] = round(time.perf_counter() - start, 1)
+        print(f"[reproduce] {stage}: {timings[stage]} s", flush=True)
     return out
 
 
-def data(prof: Profile, out: Path) -> Path:
-    """The dataset, its perturbation sets and the gallery figures under ``out``."""
+def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
+    """The dataset and its perturbation sets under ``out/data``."""
     from data_gen.dataset import generate_dataset, load_coco
-    from data_gen.gallery import write_gallery
     from data_gen.perturb import KINDS, make_perturbations
+    from kpstudy.models import BACKBONES
 
     folder = out / "data"
     wanted = {"n": prof.dataset_images, "size": prof.dataset_size, "seed": prof.seed}
     try:
         config = load_coco(folder)["info"]["config"]
-        have = {
-            "n": config["n"],
-            "size": "x".join(map(str, config["size"])),
-            "seed": config["seed"],
-        }
+        size = "x".join(map(str, config["size"]))
+        have = {"n": config["n"], "size": size, "seed": config["seed"]}
     except FileNotFoundError:
         have = None
-    if have != wanted:
+    fresh = have != wanted
+    if fresh:
         generate_dataset(
-            folder, prof.dataset_images, prof.dataset_size, prof.seed, workers=2, overwrite=True
+            folder,
+            prof.dataset_images,
+            prof.dataset_size,
+            prof.seed,
+            workers=min(2, os.cpu_count() or 1),
+            overwrite=True,
+            progress=progress,
         )
-    input_size = prof.heatmap_size
+    sizes = {"blocks": BACKBONES["resnet18"].input_size}
     for kind in KINDS:
+        size = sizes.get(kind, BACKBONES["cnn"].input_size)
         meta = folder / "perturbations" / kind / "meta.json"
-        if not meta.is_file() or json.loads(meta.read_text())["config"]["input_size"] != [
-            input_size,
-            input_size,
-        ]:
+        config = json.loads(meta.read_text())["config"] if meta.is_file() else None
+        if (
+            fresh
+            or config is None
+            or config["input_size"] != [size, size]
+            or len(config["ids"]) != prof.perturbed_seeds
+        ):
             make_perturbations(
-                folder,
-                kind,
-                seeds=prof.perturbed_seeds,
-                seed=prof.seed,
-                input_size=input_size,
+                folder, kind, seeds=prof.perturbed_seeds, seed=prof.seed, input_size=size,
                 overwrite=True,
             )
-    write_gallery(out / "figures", folder)
     return folder
 
 
-def t_prob(prof: Profile, tables: Path) -> pd.DataFrame:
-    """T-prob on ground-truth keypoints of ``prof.images`` random overhead views."""
-    P = airliner_keypoints()
-    W, H = prof.image_size
-    K = intrinsics(W, H, prof.hfov_deg)
-    R, t = overhead_poses(prof.images, prof.seed)
-    V = project_batch(P, R, t, K)
-    scale = (prof.heatmap_size / W, prof.heatmap_size / H)
-    start = time.perf_counter()
-    df = soundness_completeness_table(
-        P,
-        V,
-        K,
-        kappas=prof.kappas,
-        alphas=prof.alphas,
-        n_samples=prof.samples,
-        seed=prof.seed,
-        scale=scale,
-        max_dv=prof.heatmap_size,
-        compile=prof.images >= 1000,
-        progress=True,
-    )
-    df["paper_soundness"] = [
-        PAPER_T_PROB.get((k, a), (np.nan,))[0] for k, a in zip(df.kappa, df.alpha)
-    ]
-    df["paper_completeness"] = [
-        PAPER_T_PROB.get((k, a), (np.nan, np.nan))[1] for k, a in zip(df.kappa, df.alpha)
-    ]
-    write_table(df, tables / "t_prob")
-    meta = dict(
-        asdict(prof),
-        seconds=round(time.perf_counter() - start, 1),
-        keypoints="data_gen.keypoints.AIRLINER_KEYPOINTS",
-        heatmap_scale=scale,
-    )
-    write_text_atomic(tables / "t_prob.json", json.dumps(meta, indent=2) + "\n")
-    return df
+def checkpoints(out: Path) -> dict[str, Path]:
+    """Where the train stage writes each backbone's checkpoint."""
+    return {name: Path(out) / "models" / f"{name}.pt" for name in ("cnn", "resnet18")}
+
+
+def train_models(prof: Profile, out: Path, *, progress: bool = True) -> dict[str, Path]:
+    """Train (or resume, or reuse) the CNN and the ResNet-18 on ``out/data``."""
+    import torch
+
+    from data_gen.dataset import load_coco
+    from kpstudy.train import TrainConfig, train
+
+    paths = checkpoints(out)
+    dataset = load_coco(out / "data")["info"]["config"]
+    configs = {
+        "cnn": TrainConfig("cnn", epochs=prof.cnn_epochs, images=prof.cnn_images, seed=prof.seed),
+        "resnet18": TrainConfig(
+            "resnet18", epochs=prof.resnet_epochs, images=prof.resnet_images, seed=prof.seed,
+            batch_size=16, lr=1e-3,
+        ),
+    }
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    for name, config in configs.items():
+        path = paths[name]
+        if path.is_file():  # another profile's or another dataset's model is stale
+            state = torch.load(path, map_location="cpu", weights_only=True)
+            if state["config"] != asdict(config) or state["dataset"]["config"] != dataset:
+                path.unlink()
+        train(out / "data", path, config, device=device, progress=progress)
+    return paths
+
+
+def run_notebooks(
+    prof: Profile, out: Path, *, scheduler: str | None = None, progress: bool = True
+) -> list[Path]:
+    """Execute every study notebook whose parameters or inputs changed."""
+    import papermill
+
+    out = Path(out).resolve()
+    models = {k: str(p.resolve()) for k, p in checkpoints(out).items()}
+    data_dir = str(out / "data")
+    campaign = dict(workers=prof.workers, scheduler=scheduler)
+    parameters = {
+        "01_data": dict(data_dir=data_dir),
+        "02_training": dict(data_dir=data_dir, checkpoints=models),
+        "03_symmetry": dict(
+            data_dir=data_dir, checkpoint=models[prof.symmetry_backbone], images=prof.figure_images
+        ),
+        "04_allocation": dict(data_dir=data_dir, images=prof.figure_images, seed=prof.seed),
+        "05_probabilistic": dict(images=prof.images, samples=prof.samples, seed=prof.seed),
+        "06_local": dict(
+            data_dir=data_dir, checkpoint=models["cnn"], seeds=prof.seeds, timeout=prof.timeout,
+            **campaign,
+        ),
+        "07_global": dict(
+            data_dir=data_dir, checkpoint=models["cnn"], seeds=prof.seeds, timeout=prof.timeout,
+            **campaign,
+        ),
+        "08_resnet": dict(
+            data_dir=data_dir, checkpoint=models["resnet18"], seeds=prof.resnet_seeds,
+            timeout=prof.resnet_timeout, **campaign,
+        ),
+    }
+    done = out / "notebooks"
+    done.mkdir(parents=True, exist_ok=True)
+    executed = []
+    for name, params in parameters.items():
+        params = {"out": str(out), **params}
+        source = NOTEBOOKS / f"{name}.ipynb"
+        target = done / f"{name}.ipynb"
+        stamp = done / f"{name}.json"
+        signature = _signature(source, params)
+        if target.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == signature:
+            print(f"[reproduce] {name}: current, skipped", flush=True)
+            continue
+        stamp.unlink(missing_ok=True)
+        print(f"[reproduce] {name}: running", flush=True)
+        papermill.execute_notebook(
+            str(source),
+            str(target),
+            parameters=params,
+            cwd=str(NOTEBOOKS),
+            progress_bar=False,
+            kernel_name="python3",
+        )
+        write_text_atomic(stamp, json.dumps(signature, indent=1) + "\n")
+        executed.append(target)
+    return executed
+
+
+def _signature(notebook: Path, params: dict) -> dict:
+    """What a notebook's outputs depend on: its source, its parameters and the files named
+    in them (size and modification time)."""
+    files = {}
+    for value in _values(params):
+        path = Path(value) if isinstance(value, str) else None
+        if path is not None and path.is_file():
+            stat = path.stat()
+            files[value] = [stat.st_size, stat.st_mtime_ns]
+        elif path is not None and (path / "annotations.json").is_file():
+            stat = (path / "annotations.json").stat()
+            files[value] = [stat.st_size, stat.st_mtime_ns]
+    return {
+        "notebook": hashlib.sha256(notebook.read_bytes()).hexdigest(),
+        "parameters": params,
+        "files": files,
+    }
+
+
+def _values(params: dict):
+    for value in params.values():
+        if isinstance(value, dict):
+            yield from _values(value)
+        else:
+            yield value

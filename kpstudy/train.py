@@ -229,6 +229,26 @@ def train(
     return state
 
 
+def plot_history(checkpoints: dict):
+    """Training curves of ``{name: checkpoint path}``: loss and validation PCK@1/2 px
+    per epoch. Returns a matplotlib figure (two panels)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.8), layout="constrained")
+    loss, acc = fig.subplots(1, 2)
+    for name, path in checkpoints.items():
+        history = load_checkpoint(path)[1]["history"]
+        epochs = [h["epoch"] for h in history]
+        loss.plot(epochs, [h["loss"] for h in history], "o-", label=name)
+        for key, style in (("val_pck@1", "o-"), ("val_pck@2", "s--")):
+            acc.plot(epochs, [h[key] for h in history], style, label=f"{name} {key[4:]} px")
+    loss.set(xlabel="epoch", ylabel="training loss", title="loss")
+    acc.set(xlabel="epoch", ylabel="validation PCK", ylim=(0, 1), title="keypoints within r px")
+    loss.legend()
+    acc.legend(fontsize="small")
+    return fig
+
+
 def load_checkpoint(path) -> tuple[nn.Module, dict]:
     """The trained backbone (eval mode) and the checkpoint dictionary at ``path``."""
     path = Path(path)

@@ -1,0 +1,223 @@
+"""The verification tables of paper §8.4 from campaign records, the paper's numbers beside ours.
+
+A campaign record (:func:`kpstudy.campaign.run_campaign`) is one instance: its grid
+fields (``kind``, ``m``, ``overlapping``, ``level``, ``alpha``, ``kappa``) and the
+certificate's (``status``, ``time``, ``seed_inside``, …). Each table groups records by
+its axes and reports, per cell:
+
+* ``instances``, ``seeds_inside`` (seeds whose target-model pose error lies in Ξ) and
+  the counts of ``holds`` / ``violated`` / ``unknown`` and ``violated_at_seed`` (the
+  counterexample is the seed image itself, λ = 0);
+* ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
+  when no seed is inside);
+* ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
+* ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
+  RTX A4000; NaN where the paper has no cell).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["PAPER_T_GLOBAL", "PAPER_T_LOCAL", "PAPER_T_PROB", "PAPER_T_RESNET", "plot_table",
+           "summarise", "t_global", "t_local", "t_prob", "t_resnet"]
+
+#: Paper Tables 3–4: (m, overlapping, κ, α) → (time mean s, time std s, verified rate).
+PAPER_T_LOCAL = {
+    (2, False, 1.0, 1.0): (38.3, 56.7, 0.550),
+    (2, False, 1.0, 1.5): (11.9, 11.1, 0.885),
+    (2, False, 1.5, 1.0): (81.5, 79.7, 0.169),
+    (2, False, 1.5, 1.5): (47.1, 69.0, 0.556),
+    (2, True, 1.0, 1.0): (82.1, 128.3, 0.422),
+    (2, True, 1.0, 1.5): (31.1, 29.4, 0.741),
+    (2, True, 1.5, 1.0): (133.1, 127.3, 0.131),
+    (2, True, 1.5, 1.5): (72.4, 79.6, 0.448),
+    (3, False, 1.0, 1.0): (63.3, 89.2, 0.558),
+    (3, False, 1.0, 1.5): (16.9, 12.3, 0.885),
+    (3, False, 1.5, 1.0): (104.9, 188.3, 0.166),
+    (3, False, 1.5, 1.5): (60.7, 74.0, 0.553),
+    (3, True, 1.0, 1.0): (87.9, 87.4, 0.367),
+    (3, True, 1.0, 1.5): (47.7, 44.7, 0.651),
+    (3, True, 1.5, 1.0): (154.8, 127.4, 0.126),
+    (3, True, 1.5, 1.5): (98.3, 96.2, 0.389),
+    (4, False, 1.0, 1.0): (73.1, 103.8, 0.553),
+    (4, False, 1.0, 1.5): (23.2, 16.5, 0.855),
+    (4, False, 1.5, 1.0): (127.7, 105.4, 0.167),
+    (4, False, 1.5, 1.5): (79.1, 101.0, 0.531),
+    (4, True, 1.0, 1.0): (109.2, 101.8, 0.280),
+    (4, True, 1.0, 1.5): (60.4, 36.7, 0.504),
+    (4, True, 1.5, 1.0): (184.3, 132.5, 0.106),
+    (4, True, 1.5, 1.5): (110.1, 87.7, 0.294),
+}
+
+#: Paper Tables 5–6: (kind, level, κ, α) → (time mean s, time std s, verified rate).
+PAPER_T_GLOBAL = {
+    ("contrast", 5e-4, 1.0, 1.0): (79.7, 105.5, 0.570),
+    ("contrast", 5e-4, 1.0, 1.5): (15.4, 4.9, 0.915),
+    ("contrast", 5e-4, 1.5, 1.0): (133.9, 95.5, 0.173),
+    ("contrast", 5e-4, 1.5, 1.5): (83.2, 105.0, 0.571),
+    ("contrast", 5e-3, 1.0, 1.0): (88.6, 112.3, 0.565),
+    ("contrast", 5e-3, 1.0, 1.5): (19.6, 5.7, 0.905),
+    ("contrast", 5e-3, 1.5, 1.0): (159.0, 111.1, 0.168),
+    ("contrast", 5e-3, 1.5, 1.5): (92.0, 108.1, 0.567),
+    ("contrast", 1e-2, 1.0, 1.0): (176.3, 232.9, 0.560),
+    ("contrast", 1e-2, 1.0, 1.5): (48.7, 17.7, 0.874),
+    ("contrast", 1e-2, 1.5, 1.0): (304.1, 243.6, 0.173),
+    ("contrast", 1e-2, 1.5, 1.5): (200.0, 249.4, 0.568),
+    ("brightness", 1.0, 1.0, 1.0): (135.0, 171.5, 0.570),
+    ("brightness", 1.0, 1.0, 1.5): (32.7, 12.4, 0.915),
+    ("brightness", 1.0, 1.5, 1.0): (236.4, 164.0, 0.150),
+    ("brightness", 1.0, 1.5, 1.5): (144.7, 164.5, 0.577),
+    ("brightness", 2.0, 1.0, 1.0): (223.4, 301.9, 0.560),
+    ("brightness", 2.0, 1.0, 1.5): (64.6, 22.5, 0.885),
+    ("brightness", 2.0, 1.5, 1.0): (373.5, 309.2, 0.148),
+    ("brightness", 2.0, 1.5, 1.5): (225.1, 266.0, 0.576),
+}
+
+#: Paper §8.4, ResNet-18 block occlusions at κ = 1, α = 1.5: overlapping → (mean, std, rate).
+PAPER_T_RESNET = {False: (314.4, 227.0, 0.935), True: (1571.7, 1213.5, 0.940)}
+
+#: Paper Table 2 (soundness, completeness) by (κ, α); "<6.67e-9" is entered as 0.
+PAPER_T_PROB = {
+    (1.0, 0.5): (1.0, 1.93e-6),
+    (1.0, 1.0): (0.998978, 3.07e-5),
+    (1.0, 1.5): (0.996596, 4.85e-5),
+    (1.0, 2.0): (0.988339, 6.20e-5),
+    (1.5, 0.5): (1.0, 0.0),
+    (1.5, 1.0): (0.999993, 1.00e-6),
+    (1.5, 1.5): (0.999887, 2.00e-6),
+    (1.5, 2.0): (0.999890, 3.67e-6),
+    (2.0, 0.5): (1.0, 0.0),
+    (2.0, 1.0): (1.0, 0.0),
+    (2.0, 1.5): (1.0, 3.33e-7),
+    (2.0, 2.0): (0.999999, 6.67e-7),
+}
+
+_STATUSES = ("holds", "violated", "unknown")
+
+
+def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
+    """Per cell of ``by``: counts, verified rate and time (module docstring)."""
+    need = {*by, "status", "time", "seed_inside"}
+    missing = sorted(need - set(records.columns))
+    if missing:
+        raise ValueError(f"records: expected campaign records with columns {missing}")
+    rows = []
+    for key, cell in records.groupby(by, sort=True, dropna=False):
+        key = key if isinstance(key, tuple) else (key,)
+        inside = cell["seed_inside"].astype(bool)
+        holds = cell["status"] == "holds"
+        row = dict(zip(by, key))
+        row["instances"] = len(cell)
+        row["seeds_inside"] = int(inside.sum())
+        row.update({s: int((cell["status"] == s).sum()) for s in _STATUSES})
+        row["violated_at_seed"] = int(sum(
+            status == "violated" and lam is not None and max(lam) <= 1e-9
+            for status, lam in zip(cell["status"], cell.get("counterexample", [None] * len(cell)))
+        ))
+        row["verified_rate"] = (
+            float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
+        )
+        row["time_mean"] = float(cell["time"].mean())
+        row["time_std"] = float(cell["time"].std(ddof=0))
+        rows.append(row)
+    columns = [*by, "instances", "seeds_inside", *_STATUSES, "violated_at_seed",
+               "verified_rate", "time_mean", "time_std"]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def t_prob(table: pd.DataFrame) -> pd.DataFrame:
+    """T-prob (paper Table 2): a :func:`kpstudy.montecarlo.soundness_completeness_table`
+    with the paper's soundness and completeness beside ours."""
+    out = table.copy()
+    paper = [PAPER_T_PROB.get((k, a), (np.nan, np.nan)) for k, a in zip(out.kappa, out.alpha)]
+    out["paper_soundness"] = [p[0] for p in paper]
+    out["paper_completeness"] = [p[1] for p in paper]
+    return out
+
+
+def t_local(records: pd.DataFrame) -> pd.DataFrame:
+    """T-local (paper Tables 3–4): object occlusions by m × overlapping × κ × α."""
+    by = ["m", "overlapping", "kappa", "alpha"]
+    out = summarise(_kind(records, ("objects",)), by)
+    return _with_paper(out, PAPER_T_LOCAL, lambda r: (int(r.m), bool(r.overlapping),
+                                                       r.kappa, r.alpha))
+
+
+def t_global(records: pd.DataFrame) -> pd.DataFrame:
+    """T-global (paper Tables 5–6): contrast c and brightness b by level × κ × α, with the
+    mean clipped-pixel fraction of each cell's hulls."""
+    records = _kind(records, ("contrast", "brightness"))
+    out = summarise(records, ["kind", "level", "kappa", "alpha"])
+    if "clipped_fraction" in records:
+        clipped = records.groupby(["kind", "level", "kappa", "alpha"])["clipped_fraction"].mean()
+        out.insert(4, "clipped_fraction", clipped.to_numpy())
+    return _with_paper(out, PAPER_T_GLOBAL, lambda r: (r.kind, _level(r.level), r.kappa, r.alpha))
+
+
+def t_resnet(records: pd.DataFrame) -> pd.DataFrame:
+    """T-resnet (paper §8.4): ResNet-18 block occlusions by overlapping (κ = 1, α = 1.5)."""
+    out = summarise(_kind(records, ("blocks",)), ["overlapping", "kappa", "alpha"])
+    return _with_paper(
+        out,
+        {(o, 1.0, 1.5): v for o, v in PAPER_T_RESNET.items()},
+        lambda r: (bool(r.overlapping), r.kappa, r.alpha),
+    )
+
+
+def _kind(records: pd.DataFrame, kinds: tuple[str, ...]) -> pd.DataFrame:
+    if "kind" not in records:
+        raise ValueError("records: expected campaign records with a 'kind' column")
+    return records[records["kind"].isin(kinds)]
+
+
+def _level(level: float) -> float:
+    """The paper's level nearest ``level`` (stored levels are floats)."""
+    known = (5e-4, 5e-3, 1e-2, 1.0, 2.0)
+    return next((k for k in known if np.isclose(level, k, rtol=1e-6, atol=0)), float(level))
+
+
+def _with_paper(out: pd.DataFrame, paper: dict, key) -> pd.DataFrame:
+    values = [paper.get(key(r), (np.nan,) * 3) for r in out.itertuples(index=False)]
+    out["paper_rate"] = [v[2] for v in values]
+    out["paper_time_mean"] = [v[0] for v in values]
+    out["paper_time_std"] = [v[1] for v in values]
+    return out
+
+
+def plot_table(table: pd.DataFrame, axes: list[str], title: str):
+    """Verified rate and mean verification time per cell, ours beside the paper's.
+
+    ``axes``: the columns that name a cell (e.g. ``["m", "overlapping", "kappa", "alpha"]``).
+    Returns a matplotlib figure with two panels (rate; time in seconds, log scale).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [", ".join(f"{a}={_short(v)}" for a, v in zip(axes, row))
+              for row in table[axes].itertuples(index=False)]
+    x = np.arange(len(table))
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(6, 0.45 * len(x) + 2), 7),
+                                      sharex=True, layout="constrained")
+    for ax, ours, paper, label in (
+        (top, "verified_rate", "paper_rate", "verified rate"),
+        (bottom, "time_mean", "paper_time_mean", "verification time (s)"),
+    ):
+        ax.bar(x - 0.2, table[ours], 0.4, label="kpstudy (this run)")
+        ax.bar(x + 0.2, table[paper], 0.4, label="paper (MV.jl, RTX A4000)")
+        ax.set_ylabel(label)
+    top.set_ylim(0, 1.05)
+    bottom.set_yscale("log")
+    bottom.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
+    top.legend(fontsize="small")
+    top.set_title(title)
+    return fig
+
+
+def _short(value) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
+    return f"{value:g}" if isinstance(value, (float, np.floating)) else str(value)

@@ -1,0 +1,100 @@
+"""`python -m kpstudy reproduce` end to end at a tiny scale: data → train → the eight notebooks
+under papermill → REPORT.md; a rerun finds everything current."""
+
+import json
+from dataclasses import replace
+
+import pandas as pd
+import pytest
+
+from kpstudy.report import SECTIONS
+from kpstudy.reproduce import PROFILES, profile, reproduce
+from kpstudy.tables import PAPER_T_PROB
+
+TINY = replace(
+    PROFILES["quick"],
+    name="tiny",
+    dataset_images=20,
+    dataset_size="160x100",
+    perturbed_seeds=2,
+    cnn_epochs=1,
+    cnn_images=8,
+    resnet_epochs=1,
+    resnet_images=4,
+    images=2,
+    samples=20,
+    seeds=1,
+    resnet_seeds=1,
+    timeout=5.0,
+    resnet_timeout=5.0,
+    figure_images=2,
+)
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("results")
+    return reproduce(TINY, root, progress=False)
+
+
+def test_every_table_and_figure_is_written_and_reported(run):
+    report = (run / "REPORT.md").read_text()
+    assert "missing" not in report
+    for title, notebook, tables, figures, _ in SECTIONS:
+        assert f"## {title}" in report
+        assert (run / "notebooks" / f"{notebook}.ipynb").is_file()
+        for name in tables:
+            assert (run / "tables" / f"{name}.csv").is_file()
+            assert (run / "tables" / f"{name}.md").read_text() in report
+        for name in figures:
+            assert (run / "figures" / f"{name}.png").stat().st_size > 1000
+    assert not list(run.rglob(".*.tmp"))  # no leftovers of the atomic writes
+
+
+def test_tables_hold_the_grid_and_the_papers_numbers(run):
+    prob = pd.read_csv(run / "tables" / "t_prob.csv")
+    assert set(zip(prob.kappa, prob.alpha)) == set(PAPER_T_PROB)
+    assert prob.soundness.between(0, 1).all() and (prob.samples == 40).all()
+    local = pd.read_csv(run / "tables" / "t_local.csv")
+    assert set(local.kappa) == {1.0, 1.5} and set(local.alpha) == {1.0, 1.5}
+    assert local.paper_rate.notna().all()
+    records = pd.read_csv(run / "tables" / "t_local_records.csv")
+    assert local.instances.sum() == len(records) > 0
+    assert (local.holds + local.violated + local.unknown == local.instances).all()
+    glob = pd.read_csv(run / "tables" / "t_global.csv")
+    assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 5 * 4
+    assert glob.paper_time_mean.notna().all() and (glob.clipped_fraction >= 0).all()
+    resnet = pd.read_csv(run / "tables" / "t_resnet.csv")
+    assert set(resnet.overlapping) == {False, True} and (resnet.alpha == 1.5).all()
+
+
+def test_a_rerun_finds_every_stage_current(run, capsys):
+    stamps = {p.name: p.read_text() for p in (run / "notebooks").glob("*.json")}
+    reproduce(TINY, run.parent, progress=False)
+    out = capsys.readouterr().out
+    assert out.count("current, skipped") == 8
+    assert {p.name: p.read_text() for p in (run / "notebooks").glob("*.json")} == stamps
+
+
+def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
+    reproduce(replace(TINY, samples=10), run.parent, stages=("notebooks",), progress=False)
+    out = capsys.readouterr().out
+    assert "05_probabilistic: running" in out and out.count("current, skipped") == 7
+    assert json.loads((run / "notebooks" / "05_probabilistic.json").read_text())[
+        "parameters"
+    ]["samples"] == 10
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (dict(seeds=9), "seeds: expected at most perturbed_seeds=8"),
+        (dict(timeout=0), "timeout: expected a positive number"),
+        (dict(speed=2), "overrides: unknown profile fields ['speed']"),
+    ],
+)
+def test_bad_profiles_are_refused_before_any_work(overrides, message):
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        profile("quick", **overrides)
