@@ -312,12 +312,14 @@ def _signature(notebook: Path, params: dict) -> dict:
     files = {}
     for value in _values(params):
         path = Path(value) if isinstance(value, str) else None
-        if path is not None and path.is_file():
-            stat = path.stat()
-            files[value] = [stat.st_size, stat.st_mtime_ns]
-        elif path is not None and (path / "annotations.json").is_file():
-            stat = (path / "annotations.json").stat()
-            files[value] = [stat.st_size, stat.st_mtime_ns]
+        if path is None:
+            continue
+        members = [path] if path.is_file() else []
+        if (path / "annotations.json").is_file():  # a dataset and its perturbation sets
+            members = [path / "annotations.json", *sorted(path.glob("perturbations/*/meta.json"))]
+        for member in members:
+            stat = member.stat()
+            files[str(member)] = [stat.st_size, stat.st_mtime_ns]
     return {
         "notebook": hashlib.sha256(notebook.read_bytes()).hexdigest(),
         "parameters": params,

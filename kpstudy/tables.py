@@ -10,12 +10,16 @@ its axes and reports, per cell:
   counterexample is the seed image itself, λ = 0);
 * ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
   when no seed is inside);
+* ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
+  coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell).
 """
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pandas as pd
@@ -119,11 +123,16 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["verified_rate"] = (
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
+        if "dv" in cell:
+            dv = np.concatenate([np.ravel(json.loads(v) if isinstance(v, str) else v)
+                                 for v in cell["dv"]])
+            row["dv_mean"] = float(dv.mean())
+            row["dv_zero"] = float(np.mean(dv == 0))
         row["time_mean"] = float(cell["time"].mean())
         row["time_std"] = float(cell["time"].std(ddof=0))
         rows.append(row)
     columns = [*by, "instances", "seeds_inside", *_STATUSES, "violated_at_seed",
-               "verified_rate", "time_mean", "time_std"]
+               "verified_rate", "dv_mean", "dv_zero", "time_mean", "time_std"]
     return pd.DataFrame(rows, columns=columns)
 
 

@@ -7,7 +7,15 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.campaign import Instance, ResultStore, Settings, grid, run_campaign, run_instance
+from kpstudy.campaign import (
+    Instance,
+    ResultStore,
+    Settings,
+    grid,
+    run_campaign,
+    run_instance,
+    store_path,
+)
 from kpstudy.certify import SeedImage, certify
 from kpstudy.data import load_keypoint_set
 from kpstudy.train import TrainConfig, load_checkpoint, train
@@ -182,3 +190,17 @@ def test_run_instance_reports_the_clipped_fraction(study):
         Instance("blocks", seed.image_id, 1.0, 1.0, m=1, overlapping=False), settings
     )
     assert blocks["clipped_fraction"] == 0.0
+
+
+def test_store_paths_separate_models_and_settings(study, tmp_path):
+    data, checkpoint = study
+    settings = Settings(str(checkpoint), str(data), timeout=5)
+    path = store_path(tmp_path, "objects", settings)
+    assert path == store_path(tmp_path, "objects", Settings(str(checkpoint), str(data), timeout=5))
+    assert path.parent == tmp_path and path.name.startswith("objects-")
+    assert path != store_path(tmp_path, "objects", Settings(str(checkpoint), str(data), timeout=6))
+    other = tmp_path / "other.pt"
+    state = torch.load(checkpoint, weights_only=True)
+    state["epoch"] += 1
+    torch.save(state, other)
+    assert path != store_path(tmp_path, "objects", Settings(str(other), str(data), timeout=5))
