@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from kpstudy.report import SECTIONS
-from kpstudy.reproduce import PROFILES, profile, reproduce
+from kpstudy.reproduce import NOTEBOOKS, PROFILES, profile, reproduce
 from kpstudy.tables import PAPER_T_PROB
 
 TINY = replace(
@@ -30,15 +30,13 @@ TINY = replace(
     figure_images=2,
 )
 
-pytestmark = pytest.mark.slow
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("results")
     return reproduce(TINY, root, progress=False)
 
 
+@pytest.mark.slow
 def test_every_table_and_figure_is_written_and_reported(run):
     report = (run / "REPORT.md").read_text()
     assert "missing" not in report
@@ -53,6 +51,7 @@ def test_every_table_and_figure_is_written_and_reported(run):
     assert not list(run.rglob(".*.tmp"))  # no leftovers of the atomic writes
 
 
+@pytest.mark.slow
 def test_tables_hold_the_grid_and_the_papers_numbers(run):
     prob = pd.read_csv(run / "tables" / "t_prob.csv")
     assert set(zip(prob.kappa, prob.alpha)) == set(PAPER_T_PROB)
@@ -70,6 +69,7 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     assert set(resnet.overlapping) == {False, True} and (resnet.alpha == 1.5).all()
 
 
+@pytest.mark.slow
 def test_a_rerun_finds_every_stage_current(run, capsys):
     stamps = {p.name: p.read_text() for p in (run / "notebooks").glob("*.json")}
     reproduce(TINY, run.parent, progress=False)
@@ -78,6 +78,7 @@ def test_a_rerun_finds_every_stage_current(run, capsys):
     assert {p.name: p.read_text() for p in (run / "notebooks").glob("*.json")} == stamps
 
 
+@pytest.mark.slow
 def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
     reproduce(replace(TINY, samples=10), run.parent, stages=("notebooks",), progress=False)
     out = capsys.readouterr().out
@@ -98,3 +99,16 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
 def test_bad_profiles_are_refused_before_any_work(overrides, message):
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
         profile("quick", **overrides)
+
+
+@pytest.mark.parametrize("name", [s[1] for s in SECTIONS])
+def test_notebooks_in_git_are_stripped_and_parameterised(name):
+    import nbformat
+
+    book = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+    nbformat.validate(book)
+    code = [c for c in book.cells if c.cell_type == "code"]
+    assert all(not c.outputs and c.execution_count is None for c in code)
+    tagged = [c for c in code if "parameters" in c.metadata.get("tags", [])]
+    assert len(tagged) == 1 and tagged[0] is code[0]
+    assert "out = " in tagged[0].source
