@@ -2,7 +2,10 @@
 
 Pose-side core (no neural network): :mod:`kpstudy.geometry`, :mod:`kpstudy.pnp`,
 :mod:`kpstudy.sensitivity`, :mod:`kpstudy.allocation`, :mod:`kpstudy.pooling`,
-:mod:`kpstudy.montecarlo`. Conventions are those of DESIGN.md §3.
+:mod:`kpstudy.montecarlo`. Networks and the verifier: :mod:`kpstudy.models`,
+:mod:`kpstudy.train`, :mod:`kpstudy.verify`, :mod:`kpstudy.certify`. The study:
+:mod:`kpstudy.campaign`, :mod:`kpstudy.tables`, :mod:`kpstudy.report`,
+:mod:`kpstudy.reproduce` and the notebooks. Conventions are those of DESIGN.md §3.
 """
 
 __version__ = "0.1.0"
