@@ -75,9 +75,7 @@ class Profile:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("name", "dataset_size", "symmetry_backbone") or value is None:
-                continue
-            if f.name == "seed":
+            if f.name in ("name", "dataset_size", "symmetry_backbone", "seed") or value is None:
                 continue
             if isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
