@@ -6,6 +6,7 @@ from kpstudy.geometry import euler_from_matrix, project, wrap_degrees
 from kpstudy.montecarlo import (
     EPS_R,
     EPS_T,
+    SOUNDNESS_TOL_PX,
     _rng,
     probabilistic_completeness,
     probabilistic_soundness,
@@ -123,6 +124,17 @@ def test_soundness_equals_opencv_reference(P, K, study):
             ]
             inside.append(np.all(d <= eps))
         assert ours[i] == pytest.approx(np.mean(inside), abs=1e-12)
+
+
+def test_soundness_tolerance_does_not_change_decisions(P, K, study):
+    """The Monte Carlo's looser stopping tolerance gives the fractions of a tight one."""
+    V, R, t, M = study
+    args = (P, V, K, R, t, allocate(M, 1.0), EPS_R, EPS_T)
+    common = dict(n_samples=400, seed=5, scale=HEATMAP_SCALE)
+    assert SOUNDNESS_TOL_PX > 1e-7
+    loose = probabilistic_soundness(*args, **common)
+    tight = probabilistic_soundness(*args, tol_px=1e-7, **common)
+    np.testing.assert_array_equal(loose, tight)
 
 
 def test_completeness_matches_direct_projection(P, K, study):
