@@ -157,8 +157,9 @@ def dataset_summary(data_dir):
         if not (Path(data_dir) / "perturbations" / kind / "meta.json").is_file():
             continue
         meta = load_perturbations(data_dir, kind)["images"]
-        row = dict(set=f"{kind} perturbations", seeds=len({r["image_id"] for r in meta}),
-                   images=len(meta))
+        row = dict(
+            set=f"{kind} perturbations", seeds=len({r["image_id"] for r in meta}), images=len(meta)
+        )
         if kind in ("objects", "blocks"):
             row["overlapping"] = sum(bool(r["overlapping"]) for r in meta)
             row["non_overlapping"] = len(meta) - row["overlapping"]

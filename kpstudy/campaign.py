@@ -198,8 +198,11 @@ def store_path(folder, name: str, settings: Settings) -> Path:
     _check_settings(settings)
     digest = hashlib.sha256()
     data = Path(settings.data_dir)
-    for path in [Path(settings.checkpoint), data / "annotations.json",
-                 *sorted(data.glob("perturbations/*/meta.json"))]:
+    for path in [
+        Path(settings.checkpoint),
+        data / "annotations.json",
+        *sorted(data.glob("perturbations/*/meta.json")),
+    ]:
         digest.update(path.read_bytes())
     rest = {k: v for k, v in asdict(settings).items() if k not in ("checkpoint", "data_dir")}
     digest.update(json.dumps(rest, sort_keys=True).encode())

@@ -70,8 +70,12 @@ def main(argv=None) -> int:
             from kpstudy.reproduce import STAGES, profile, reproduce
 
             prof = profile(
-                args.profile, images=args.images, samples=args.samples, seeds=args.seeds,
-                timeout=args.timeout, workers=args.workers,
+                args.profile,
+                images=args.images,
+                samples=args.samples,
+                seeds=args.seeds,
+                timeout=args.timeout,
+                workers=args.workers,
             )
             out = reproduce(prof, args.out, stages=args.stages or STAGES, scheduler=args.scheduler)
             print(f"results written to {out}")

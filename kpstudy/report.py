@@ -18,20 +18,44 @@ __all__ = ["SECTIONS", "campaign_readings", "t_prob_readings", "write_report"]
 
 #: (title, notebook, tables, figures, what it reproduces)
 SECTIONS = (
-    ("F-data: dataset and perturbations", "01_data", ["f_data"],
-     ["renders", "occluders", "perturbations"], "paper §8.1, Figs. 5–6"),
+    (
+        "F-data: dataset and perturbations",
+        "01_data",
+        ["f_data"],
+        ["renders", "occluders", "perturbations"],
+        "paper §8.1, Figs. 5–6",
+    ),
     ("Trained backbones", "02_training", ["training"], ["training"], "paper §8.1"),
     ("F-sym: heatmap symmetry", "03_symmetry", ["f_sym"], ["f_sym"], "paper Fig. 8"),
-    ("F-alloc and F-kps: allocated tolerances", "04_allocation", [], ["f_alloc", "f_kps"],
-     "paper Figs. 9–10 (table: tables/f_alloc.csv)"),
-    ("T-prob: probabilistic soundness and completeness", "05_probabilistic", ["t_prob"], [],
-     "paper Table 2"),
-    ("T-local: object occlusions, CNN", "06_local", ["t_local"], ["t_local"],
-     "paper Tables 3–4"),
-    ("T-global: brightness and contrast, CNN", "07_global", ["t_global"], ["t_global"],
-     "paper Tables 5–6"),
-    ("T-resnet: block occlusions, ResNet-18", "08_resnet", ["t_resnet"], ["t_resnet"],
-     "paper §8.4"),
+    (
+        "F-alloc and F-kps: allocated tolerances",
+        "04_allocation",
+        [],
+        ["f_alloc", "f_kps"],
+        "paper Figs. 9–10 (table: tables/f_alloc.csv)",
+    ),
+    (
+        "T-prob: probabilistic soundness and completeness",
+        "05_probabilistic",
+        ["t_prob"],
+        [],
+        "paper Table 2",
+    ),
+    ("T-local: object occlusions, CNN", "06_local", ["t_local"], ["t_local"], "paper Tables 3–4"),
+    (
+        "T-global: brightness and contrast, CNN",
+        "07_global",
+        ["t_global"],
+        ["t_global"],
+        "paper Tables 5–6",
+    ),
+    (
+        "T-resnet: block occlusions, ResNet-18",
+        "08_resnet",
+        ["t_resnet"],
+        ["t_resnet"],
+        "paper §8.4",
+    ),
 )
 
 
@@ -51,8 +75,12 @@ def write_report(out, profile: dict | None = None) -> Path:
         lines += ["| setting | value |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in profile.items()]
         lines.append("")
-    readers = {"t_prob": t_prob_readings, "t_local": _local, "t_global": _global,
-               "t_resnet": _resnet}
+    readers = {
+        "t_prob": t_prob_readings,
+        "t_local": _local,
+        "t_global": _global,
+        "t_resnet": _resnet,
+    }
     for title, notebook, names, pictures, source in SECTIONS:
         lines += [f"## {title}", "", f"Notebook `notebooks/{notebook}.ipynb`; {source}.", ""]
         for name in names:
@@ -66,8 +94,11 @@ def write_report(out, profile: dict | None = None) -> Path:
                 lines += ["**Reading.**", "", *[f"- {t}" for t in text], ""]
         for picture in pictures:
             png = figures / f"{picture}.png"
-            lines += ([f"![{picture}](figures/{picture}.png)", ""] if png.is_file()
-                      else [f"*Figure `{picture}` is missing.*", ""])
+            lines += (
+                [f"![{picture}](figures/{picture}.png)", ""]
+                if png.is_file()
+                else [f"*Figure `{picture}` is missing.*", ""]
+            )
     return write_text_atomic(out / "REPORT.md", "\n".join(lines))
 
 
@@ -91,9 +122,7 @@ def t_prob_readings(table: pd.DataFrame) -> list[str]:
     ]
 
 
-def campaign_readings(
-    table: pd.DataFrame, axes: dict[str, str], summary: bool = True
-) -> list[str]:
+def campaign_readings(table: pd.DataFrame, axes: dict[str, str], summary: bool = True) -> list[str]:
     """For each axis ``{column: name}``, the verified rate and mean time at its smallest and
     largest value (averaged over the other axes), ours and the paper's; with ``summary``,
     first the counts and the allocation's share of one-pixel cells."""

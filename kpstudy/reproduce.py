@@ -208,7 +208,11 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
             or len(config["ids"]) != prof.perturbed_seeds
         ):
             make_perturbations(
-                folder, kind, seeds=prof.perturbed_seeds, seed=prof.seed, input_size=size,
+                folder,
+                kind,
+                seeds=prof.perturbed_seeds,
+                seed=prof.seed,
+                input_size=size,
                 overwrite=True,
             )
     return folder
@@ -231,8 +235,12 @@ def train_models(prof: Profile, out: Path, *, progress: bool = True) -> dict[str
     configs = {
         "cnn": TrainConfig("cnn", epochs=prof.cnn_epochs, images=prof.cnn_images, seed=prof.seed),
         "resnet18": TrainConfig(
-            "resnet18", epochs=prof.resnet_epochs, images=prof.resnet_images, seed=prof.seed,
-            batch_size=16, lr=1e-3,
+            "resnet18",
+            epochs=prof.resnet_epochs,
+            images=prof.resnet_images,
+            seed=prof.seed,
+            batch_size=16,
+            lr=1e-3,
         ),
     }
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -265,16 +273,25 @@ def run_notebooks(
         "04_allocation": dict(data_dir=data_dir, images=prof.figure_images, seed=prof.seed),
         "05_probabilistic": dict(images=prof.images, samples=prof.samples, seed=prof.seed),
         "06_local": dict(
-            data_dir=data_dir, checkpoint=models["cnn"], seeds=prof.seeds, timeout=prof.timeout,
+            data_dir=data_dir,
+            checkpoint=models["cnn"],
+            seeds=prof.seeds,
+            timeout=prof.timeout,
             **campaign,
         ),
         "07_global": dict(
-            data_dir=data_dir, checkpoint=models["cnn"], seeds=prof.seeds, timeout=prof.timeout,
+            data_dir=data_dir,
+            checkpoint=models["cnn"],
+            seeds=prof.seeds,
+            timeout=prof.timeout,
             **campaign,
         ),
         "08_resnet": dict(
-            data_dir=data_dir, checkpoint=models["resnet18"], seeds=prof.resnet_seeds,
-            timeout=prof.resnet_timeout, **campaign,
+            data_dir=data_dir,
+            checkpoint=models["resnet18"],
+            seeds=prof.resnet_seeds,
+            timeout=prof.resnet_timeout,
+            **campaign,
         ),
     }
     done = out / "notebooks"

@@ -24,8 +24,18 @@ import json
 import numpy as np
 import pandas as pd
 
-__all__ = ["PAPER_T_GLOBAL", "PAPER_T_LOCAL", "PAPER_T_PROB", "PAPER_T_RESNET", "plot_table",
-           "summarise", "t_global", "t_local", "t_prob", "t_resnet"]
+__all__ = [
+    "PAPER_T_GLOBAL",
+    "PAPER_T_LOCAL",
+    "PAPER_T_PROB",
+    "PAPER_T_RESNET",
+    "plot_table",
+    "summarise",
+    "t_global",
+    "t_local",
+    "t_prob",
+    "t_resnet",
+]
 
 #: Paper Tables 3–4: (m, overlapping, κ, α) → (time mean s, time std s, verified rate).
 PAPER_T_LOCAL = {
@@ -116,23 +126,38 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["instances"] = len(cell)
         row["seeds_inside"] = int(inside.sum())
         row.update({s: int((cell["status"] == s).sum()) for s in _STATUSES})
-        row["violated_at_seed"] = int(sum(
-            status == "violated" and lam is not None and max(lam) <= 1e-9
-            for status, lam in zip(cell["status"], cell.get("counterexample", [None] * len(cell)))
-        ))
+        row["violated_at_seed"] = int(
+            sum(
+                status == "violated" and lam is not None and max(lam) <= 1e-9
+                for status, lam in zip(
+                    cell["status"], cell.get("counterexample", [None] * len(cell))
+                )
+            )
+        )
         row["verified_rate"] = (
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
         if "dv" in cell:
-            dv = np.concatenate([np.ravel(json.loads(v) if isinstance(v, str) else v)
-                                 for v in cell["dv"]])
+            dv = np.concatenate(
+                [np.ravel(json.loads(v) if isinstance(v, str) else v) for v in cell["dv"]]
+            )
             row["dv_mean"] = float(dv.mean())
             row["dv_zero"] = float(np.mean(dv == 0))
         row["time_mean"] = float(cell["time"].mean())
         row["time_std"] = float(cell["time"].std(ddof=0))
         rows.append(row)
-    columns = [*by, "instances", "seeds_inside", *_STATUSES, "violated_at_seed",
-               "verified_rate", "dv_mean", "dv_zero", "time_mean", "time_std"]
+    columns = [
+        *by,
+        "instances",
+        "seeds_inside",
+        *_STATUSES,
+        "violated_at_seed",
+        "verified_rate",
+        "dv_mean",
+        "dv_zero",
+        "time_mean",
+        "time_std",
+    ]
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -150,8 +175,9 @@ def t_local(records: pd.DataFrame) -> pd.DataFrame:
     """T-local (paper Tables 3–4): object occlusions by m × overlapping × κ × α."""
     by = ["m", "overlapping", "kappa", "alpha"]
     out = summarise(_kind(records, ("objects",)), by)
-    return _with_paper(out, PAPER_T_LOCAL, lambda r: (int(r.m), bool(r.overlapping),
-                                                       r.kappa, r.alpha))
+    return _with_paper(
+        out, PAPER_T_LOCAL, lambda r: (int(r.m), bool(r.overlapping), r.kappa, r.alpha)
+    )
 
 
 def t_global(records: pd.DataFrame) -> pd.DataFrame:
@@ -206,11 +232,14 @@ def plot_table(table: pd.DataFrame, axes: list[str], title: str):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = [", ".join(f"{a}={_short(v)}" for a, v in zip(axes, row))
-              for row in table[axes].itertuples(index=False)]
+    labels = [
+        ", ".join(f"{a}={_short(v)}" for a, v in zip(axes, row))
+        for row in table[axes].itertuples(index=False)
+    ]
     x = np.arange(len(table))
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(6, 0.45 * len(x) + 2), 7),
-                                      sharex=True, layout="constrained")
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(max(6, 0.45 * len(x) + 2), 7), sharex=True, layout="constrained"
+    )
     for ax, ours, paper, label in (
         (top, "verified_rate", "paper_rate", "verified rate"),
         (bottom, "time_mean", "paper_time_mean", "verification time (s)"),

@@ -30,6 +30,7 @@ TINY = replace(
     figure_images=2,
 )
 
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("results")
@@ -83,9 +84,12 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
     reproduce(replace(TINY, samples=10), run.parent, stages=("notebooks",), progress=False)
     out = capsys.readouterr().out
     assert "05_probabilistic: running" in out and out.count("current, skipped") == 7
-    assert json.loads((run / "notebooks" / "05_probabilistic.json").read_text())[
-        "parameters"
-    ]["samples"] == 10
+    assert (
+        json.loads((run / "notebooks" / "05_probabilistic.json").read_text())["parameters"][
+            "samples"
+        ]
+        == 10
+    )
 
 
 @pytest.mark.parametrize(
