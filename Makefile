@@ -38,6 +38,7 @@ test-fast: setup
 
 lint: setup
 	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks
+	$(VENV)/bin/ruff format --check kpstudy data_gen tests benchmarks
 
 # The main job: everything that exists so far, at the chosen profile.
 reproduce: setup
