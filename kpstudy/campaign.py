@@ -70,6 +70,9 @@ class Settings:
         Hull images through the target model for ``holds`` records.
     hull_seed : int
         Which ``m`` perturbed images make a local hull.
+    pose_bound_timeout, pose_bound_stride :
+        The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`);
+        ``None`` skips it.
     """
 
     checkpoint: str
@@ -78,6 +81,8 @@ class Settings:
     timeout: float = 60.0
     check_samples: int = 200
     hull_seed: int = 0
+    pose_bound_timeout: float | None = None
+    pose_bound_stride: int = 1
 
 
 def grid(
@@ -303,6 +308,8 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
         method=settings.method,
         timeout=settings.timeout,
         check_samples=settings.check_samples,
+        pose_bound_timeout=settings.pose_bound_timeout,
+        pose_bound_stride=settings.pose_bound_stride,
     )
     clipped = 0.0
     if instance.kind in GLOBAL_KINDS:
@@ -352,6 +359,13 @@ def _check_settings(settings: Settings) -> None:
         raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {settings.method!r}")
     if not settings.timeout > 0:
         raise ValueError(f"timeout: expected seconds > 0, got {settings.timeout}")
+    if settings.pose_bound_timeout is not None and not settings.pose_bound_timeout > 0:
+        raise ValueError(
+            f"pose_bound_timeout: expected None or seconds > 0, got {settings.pose_bound_timeout}"
+        )
+    stride = settings.pose_bound_stride
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
+        raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
 
 
 def _positive_list(values, name: str) -> list[float]:

@@ -8,7 +8,9 @@ ground truth and the vertices of a convex hull of perturbed images:
 3. optimal integer tolerances ``δv`` (``κ |M| δv ≤ α ε``);
 4. pooling cells of side ``2δv + 1`` centred on the rounded ground-truth keypoints → the
    proxy network and its spec ("each keypoint's own cell wins");
-5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices.
+5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
+6. optionally, on the same hull, the pose-bound method (:mod:`kpstudy.pose_bound`): where
+   each keypoint's argmax can go, and the pose-error bound that follows.
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
@@ -33,6 +35,7 @@ from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import build_proxy
 from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
+from kpstudy.pose_bound import pose_bound
 from kpstudy.pooling import keypoint_pooling
 from kpstudy.preprocess import (
     normalise,
@@ -112,6 +115,8 @@ def certify(
     timeout: float = 60.0,
     check_samples: int = 200,
     sample_seed: int = 0,
+    pose_bound_timeout: float | None = None,
+    pose_bound_stride: int = 1,
 ) -> dict:
     """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
 
@@ -132,6 +137,11 @@ def certify(
     check_samples : int
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
+    pose_bound_timeout : float, optional
+        Seconds for the second method, :func:`kpstudy.pose_bound.pose_bound` (reachable
+        keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
+    pose_bound_stride : int
+        Its cell side in heatmap pixels (1: the argmax pixel itself).
 
     Returns
     -------
@@ -142,7 +152,8 @@ def certify(
         ``objective``, ``seed_error`` (6 pose errors of the target model on the seed,
         degrees and metres), ``seed_inside`` (that error lies in Ξ), ``counterexample``
         (λ or None), ``empirical_inside`` (fraction of sampled hull images whose target
-        pose error lies in Ξ; None unless ``holds``), ``empirical_samples``.
+        pose error lies in Ξ; None unless ``holds``), ``empirical_samples``; with
+        ``pose_bound_timeout``, the ``pb_*`` entries of :func:`kpstudy.pose_bound.pose_bound`.
     """
     start = time.perf_counter()
     alpha = float(_checks.positive(alpha, "alpha"))
@@ -203,5 +214,22 @@ def certify(
         errors = target_pose_errors(backbone, hull.image(lam), seed, R, t)
         record["empirical_inside"] = float(np.mean(np.all(errors <= xi, axis=1)))
         record["empirical_samples"] = int(check_samples)
+    if pose_bound_timeout is not None:
+        M_image = pose_sensitivity(P, V, K, R, t)
+        record.update(
+            pose_bound(
+                backbone,
+                hull,
+                seed,
+                R,
+                t,
+                M_image,
+                xi,
+                kappa=kappa,
+                stride=pose_bound_stride,
+                timeout=pose_bound_timeout,
+                sample_seed=sample_seed,
+            )
+        )
     record["total_time"] = time.perf_counter() - start
     return record

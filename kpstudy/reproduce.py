@@ -48,6 +48,8 @@ class Profile:
     images, samples : T-prob's overhead views and Monte Carlo samples per view.
     seeds : seed images per campaign (≤ ``perturbed_seeds``); ``resnet_seeds`` for T-resnet.
     timeout, resnet_timeout : verification seconds per instance.
+    pose_bound_timeout : seconds per hull for the pose-bound method's keypoint regions
+        (T-local and T-global, beside the allocation method).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
     workers : local processes per campaign.
@@ -67,6 +69,7 @@ class Profile:
     resnet_timeout: float
     cnn_images: int | None = None
     resnet_images: int | None = None
+    pose_bound_timeout: float = 2.0
     symmetry_backbone: str = "cnn"
     figure_images: int = 50
     workers: int = 1
@@ -119,6 +122,7 @@ PROFILES = {
         resnet_seeds=200,
         timeout=600.0,
         resnet_timeout=3600.0,
+        pose_bound_timeout=600.0,
         symmetry_backbone="resnet18",
         figure_images=3000,
     ),
@@ -277,6 +281,7 @@ def run_notebooks(
             checkpoint=models["cnn"],
             seeds=prof.seeds,
             timeout=prof.timeout,
+            pose_bound_timeout=prof.pose_bound_timeout,
             **campaign,
         ),
         "07_global": dict(
@@ -284,6 +289,7 @@ def run_notebooks(
             checkpoint=models["cnn"],
             seeds=prof.seeds,
             timeout=prof.timeout,
+            pose_bound_timeout=prof.pose_bound_timeout,
             **campaign,
         ),
         "08_resnet": dict(

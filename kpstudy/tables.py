@@ -14,7 +14,11 @@ its axes and reports, per cell:
   coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
-  RTX A4000; NaN where the paper has no cell).
+  RTX A4000; NaN where the paper has no cell);
+* with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
+  ``pb_holds``, ``pb_verified_rate`` (same denominator), ``pb_time_mean``, and
+  ``pb_only`` / ``allocation_only``: seeds inside Ξ that one method verifies and the
+  other does not.
 """
 
 from __future__ import annotations
@@ -29,7 +33,9 @@ __all__ = [
     "PAPER_T_LOCAL",
     "PAPER_T_PROB",
     "PAPER_T_RESNET",
+    "plot_pose_bounds",
     "plot_table",
+    "pose_bound_ratios",
     "summarise",
     "t_global",
     "t_local",
@@ -145,6 +151,15 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["dv_zero"] = float(np.mean(dv == 0))
         row["time_mean"] = float(cell["time"].mean())
         row["time_std"] = float(cell["time"].std(ddof=0))
+        if "pb_status" in cell:
+            pb = cell["pb_status"] == "holds"
+            row["pb_holds"] = int(pb.sum())
+            row["pb_verified_rate"] = (
+                float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
+            )
+            row["pb_time_mean"] = float(cell["pb_time"].mean())
+            row["pb_only"] = int((pb & ~holds & inside).sum())
+            row["allocation_only"] = int((holds & ~pb & inside).sum())
         rows.append(row)
     columns = [
         *by,
@@ -158,6 +173,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "time_mean",
         "time_std",
     ]
+    if "pb_status" in records:
+        columns += ["pb_holds", "pb_verified_rate", "pb_time_mean", "pb_only", "allocation_only"]
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -252,6 +269,42 @@ def plot_table(table: pd.DataFrame, axes: list[str], title: str):
     bottom.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
     top.legend(fontsize="small")
     top.set_title(title)
+    return fig
+
+
+def pose_bound_ratios(records: pd.DataFrame) -> pd.DataFrame:
+    """Certified pose-error bound ÷ ε at α = 1 (``[10°, 10°, 10°, 4, 4, 20 m]``) per pose
+    axis, one row per hull (the bound does not depend on α or κ); records whose search
+    stopped at a violated seed have no bound and are left out."""
+    from kpstudy.montecarlo import EPS_R, EPS_T
+
+    hull = [c for c in ("kind", "image_id", "m", "overlapping", "level") if c in records]
+    rows = records.dropna(subset=["pb_bound"]).drop_duplicates(hull)
+    bound = np.array([json.loads(b) if isinstance(b, str) else b for b in rows["pb_bound"]])
+    axes = ["roll", "pitch", "yaw", "tx", "ty", "tz"]
+    out = pd.DataFrame(bound.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=axes)
+    return pd.concat([rows[hull].reset_index(drop=True), out], axis=1)
+
+
+def plot_pose_bounds(records: pd.DataFrame, title: str):
+    """Distribution of the certified bound ÷ ε per pose axis (log scale): below 1 is
+    inside Ξ at α = 1, below 1.5 at α = 1.5. Returns a matplotlib figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ratios = pose_bound_ratios(records)
+    axes = ["roll", "pitch", "yaw", "tx", "ty", "tz"]
+    fig, ax = plt.subplots(figsize=(6, 3.5), layout="constrained")
+    if len(ratios):
+        ax.boxplot([ratios[a] for a in axes], tick_labels=axes)
+    for level, style in ((1.0, "--"), (1.5, ":")):
+        ax.axhline(level, color="k", ls=style, lw=0.8, label=f"inside Ξ at α = {level:g}")
+    ax.set_yscale("log")
+    ax.set_ylabel("certified bound ÷ ε (α = 1)")
+    ax.set_title(f"{title} ({len(ratios)} hulls)")
+    ax.legend(fontsize="small")
     return fig
 
 

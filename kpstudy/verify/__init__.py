@@ -5,13 +5,16 @@ An instance is a problem (model, input set, output spec) × a bound method × a 
 ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
 :func:`output_bounds` with ``'ibp'``, ``'forward'`` or ``'crown'``; :func:`verify` returns
 a :class:`Result` — ``holds``, ``violated`` with a re-checked counterexample, or
-``unknown``; :func:`export_instance` writes ONNX + VNN-LIB for other verifiers and
-:func:`export_onnx` a plain network (a backbone, a proxy).
+``unknown``; :func:`reachable_argmax` returns sound sets of the indices each keypoint's
+argmax can take (:class:`Regions`), with witnesses; :func:`export_instance` writes
+ONNX + VNN-LIB for other verifiers and :func:`export_onnx` a plain network (a backbone,
+a proxy).
 """
 
 from kpstudy.verify.bab import verify
 from kpstudy.verify.bounds import output_bounds
 from kpstudy.verify.export import export_instance, export_onnx, read_vnnlib_polytope
+from kpstudy.verify.reachable import Regions, reachable_argmax
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.spec import ArgmaxSpec
@@ -22,10 +25,12 @@ __all__ = [
     "ConvexHull",
     "Counterexample",
     "Parallelotope",
+    "Regions",
     "Result",
     "export_instance",
     "export_onnx",
     "output_bounds",
+    "reachable_argmax",
     "read_vnnlib_polytope",
     "verify",
 ]

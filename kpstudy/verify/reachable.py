@@ -1,0 +1,251 @@
+"""Where can each group's argmax go? Sound reachable sets by branch and bound.
+
+For a concatenated output (one group per keypoint, e.g. a keypoint's heatmap pixels) and
+an input set, :func:`reachable_argmax` returns for every group a *possible* set of output
+indices — a sound superset of the indices that are the argmax somewhere in the set — and
+a *reached* set with a witness point for each of its indices.
+
+Exclusion rule, per node of the branch and bound: index ``i`` is dropped when some
+candidate ``c`` provably beats it everywhere in the node, ``min_θ (ℓ_c(θ) − u_i(θ)) > tol``
+with ``ℓ``, ``u`` the linear lower and upper bounds of the outputs in the node's
+parameters (:func:`kpstudy.verify.bounds.propagate`) and the minimum taken exactly over
+the node's domain. The candidates are the ``candidates`` indices with the largest lower
+bounds, so the rule is never weaker than comparing intervals. The union of the nodes'
+undropped indices is the possible set. Witnesses come from the concrete model at every
+node's vertices and centroid (plus random points at the root): the argmax there is
+reached. A node is split while it keeps, for some group, an index not yet reached; the
+search ends when the possible and reached sets agree (``complete``) or the budget is spent.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from kpstudy.verify.bab import _take
+from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
+from kpstudy.verify.graph import trace
+
+METHODS = ("ibp", "forward")
+
+
+@dataclass
+class Regions:
+    """Outcome of :func:`reachable_argmax`.
+
+    Attributes
+    ----------
+    group_sizes : list of int
+    possible : list of ndarray
+        Per group, sorted indices within the group that may be the argmax somewhere in the
+        set (a sound superset: every other index is provably beaten everywhere).
+    witnesses : list of dict
+        Per group, ``{index: point}``: a set parameter (``λ (n,)``) at which the concrete
+        model's argmax in that group is ``index``.
+    time : float
+        Seconds.
+    nodes : int
+        Branch-and-bound nodes bounded.
+    stats : dict
+        ``method``, ``depth``, ``timed_out``, ``candidates``.
+    """
+
+    group_sizes: list[int]
+    possible: list[np.ndarray]
+    witnesses: list[dict[int, torch.Tensor]]
+    time: float
+    nodes: int
+    stats: dict = field(default_factory=dict)
+
+    def reached(self, group: int) -> np.ndarray:
+        """Sorted indices of ``group`` with a witness (a subset of ``possible[group]``)."""
+        return np.array(sorted(self.witnesses[group]), dtype=np.int64)
+
+    @property
+    def gap(self) -> np.ndarray:
+        """Per group, possible indices without a witness ``(G,)``."""
+        return np.array([len(p) - len(w) for p, w in zip(self.possible, self.witnesses)])
+
+    @property
+    def complete(self) -> bool:
+        """Whether every possible index was reached: the sets are exact."""
+        return not self.gap.any()
+
+
+def reachable_argmax(
+    model,
+    input_set,
+    group_sizes,
+    *,
+    method: str = "forward",
+    timeout: float = 10.0,
+    max_nodes: int | None = None,
+    batch: int | None = None,
+    candidates: int = 4,
+    samples: int = 64,
+    seed: int = 0,
+    tol: float = 1e-5,
+    memory: int = 2**25,
+) -> Regions:
+    """Sound sets of the indices each output group's argmax can take over ``input_set``.
+
+    Parameters
+    ----------
+    model : nn.Module
+        Eval-mode network of the operators of :mod:`kpstudy.verify.graph`; its flattened
+        output is the concatenation of the groups.
+    input_set : ConvexHull or Parallelotope
+    group_sizes : sequence of int
+        Entries per group, summing to the model's output size.
+    method : {'forward', 'ibp'}
+        Bounds at each node.
+    timeout : float
+        Seconds before the search stops; the possible sets are sound at any time.
+    max_nodes, batch : int, optional
+        Most nodes to bound; nodes bounded together (default: what fits in ``memory``).
+    candidates : int
+        Indices per group (largest lower bounds) that try to beat each other index.
+    samples : int
+        Random points of the set evaluated at the start for witnesses.
+    seed : int
+    tol : float
+        A candidate beats an index when its margin's lower bound exceeds
+        ``tol · (1 + max |y(X0)|)`` (float32 rounding never drops a reachable index).
+    memory : int
+        Element budget of the largest bound tensor.
+
+    Returns
+    -------
+    Regions
+
+    Examples
+    --------
+    >>> regions = reachable_argmax(backbone, ConvexHull(images), [64 * 64] * 23)  # doctest: +SKIP
+    >>> regions.possible[0], regions.complete
+    (array([2079, 2080, 2143]), True)
+    """
+    start = time.perf_counter()
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    if input_set.domain not in ("simplex", "cube"):
+        raise ValueError(
+            f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
+        )
+    if not timeout > 0:
+        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
+    for name, v in (("max_nodes", max_nodes), ("batch", batch)):
+        if v is not None and not (isinstance(v, int) and v >= 1):
+            raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
+    for name, v in (("candidates", candidates), ("samples", samples)):
+        if not (isinstance(v, int) and v >= (1 if name == "candidates" else 0)):
+            raise ValueError(
+                f"{name}: expected an integer >= {int(name == 'candidates')}, got {v!r}"
+            )
+    sizes = [int(s) for s in group_sizes]
+    if not sizes or min(sizes) < 1:
+        raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
+    graph = trace(model, example_input(input_set))
+    if graph.output_size != sum(sizes):
+        raise ValueError(
+            f"group_sizes: expected them to sum to the model's {graph.output_size} outputs, "
+            f"got {sum(sizes)}"
+        )
+    G, S = len(sizes), max(sizes)
+    search = _Reach(model, graph, input_set, sizes, method, min(candidates, S), tol)
+    if batch is None:
+        q = input_set.n + 1
+        biggest = max(max(math.prod(n.shape) for n in graph.nodes), G * S * (candidates + 2))
+        batch = max(1, min(64, memory // (2 * q * biggest)))
+
+    with torch.no_grad():
+        if samples:
+            search.witness(input_set.sample(samples, seed))
+        possible = torch.zeros(G, S, dtype=torch.bool)  # union over closed nodes
+        root = search.valid[None].clone()
+        queue = [(input_set.root(), root, 0)]
+        nodes_done, depth, timed_out = 0, 0, False
+        while queue:
+            if time.perf_counter() - start > timeout or (max_nodes and nodes_done >= max_nodes):
+                timed_out = True
+                break
+            nodes, parent, level = _take(queue, batch)
+            depth = max(depth, level)
+            search.witness(input_set.node_points(nodes).reshape(-1, input_set.n))
+            kept = search.undominated(nodes) & parent  # (B, G, S)
+            nodes_done += len(nodes)
+            open_ = (kept & ~search.reached).flatten(1).any(1)
+            possible |= kept[~open_].any(0)
+            if open_.any():
+                queue.append(
+                    (input_set.split(nodes[open_]), kept[open_].repeat(2, 1, 1), level + 1)
+                )
+        for _, parent, _ in queue:  # what was left open keeps its parent's sets
+            possible |= parent.any(0)
+        possible |= search.reached  # float rounding must never drop a witnessed index
+    return Regions(
+        sizes,
+        [np.flatnonzero(p.numpy()) for p in possible],
+        search.witnesses,
+        time.perf_counter() - start,
+        nodes_done,
+        {"method": method, "depth": depth, "timed_out": timed_out, "candidates": candidates},
+    )
+
+
+class _Reach:
+    """Bounds and witnesses for one reachability search."""
+
+    def __init__(self, model, graph, input_set, sizes, method, candidates, tol):
+        self.model, self.graph, self.set = model, graph, input_set
+        self.G, self.S, self.method, self.k = len(sizes), max(sizes), method, candidates
+        # Groups padded to a (G, S) layout: flat output index and whether it exists.
+        offsets = np.cumsum([0, *sizes[:-1]])
+        within = torch.arange(self.S)
+        self.valid = within[None] < torch.tensor(sizes)[:, None]
+        self.flat = torch.where(self.valid, torch.tensor(offsets)[:, None] + within, 0)
+        self.reached = torch.zeros(self.G, self.S, dtype=torch.bool)
+        self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
+        with torch.no_grad():
+            y0 = graph.forward(example_input(input_set).to(graph.dtype))
+        self.tol_abs = tol * (1.0 + float(y0.abs().max()))
+
+    def witness(self, points: torch.Tensor) -> None:
+        """Record the concrete argmax of every group at ``points (P, n)``."""
+        for chunk in points.split(64):
+            y = self._padded(self.model(self.set.image(chunk)).flatten(1), float("-inf"))
+            best = y.argmax(-1)  # (P, G): the first of tied maxima, as torch.argmax
+            for p, g in (~self.reached.gather(1, best.T).T).nonzero().tolist():
+                i = int(best[p, g])
+                if not self.reached[g, i]:
+                    self.reached[g, i] = True
+                    self.witnesses[g][i] = chunk[p].clone()
+
+    def undominated(self, nodes: torch.Tensor) -> torch.Tensor:
+        """Indices not provably beaten in each node, ``(B, G, S)`` bool."""
+        region = node_region(self.set, nodes, self.graph.dtype)
+        if self.method == "ibp":
+            region = region.to_interval()
+        out, _ = propagate(self.graph, region)
+        B, q = out.mid.shape[:2]
+        mid, rad = out.mid.flatten(2), out.rad.flatten(2)
+        low = self._padded(mid - rad, float("-inf"))  # a missing entry never beats another
+        up = self._padded(mid + rad, 0.0)
+        lower = domain_min(low, out.domain)  # (B, G, S)
+        top = lower.topk(self.k, dim=-1).indices  # (B, G, k)
+        beaten = torch.zeros(B, self.G, self.S, dtype=torch.bool)
+        for c in range(self.k):
+            index = top[:, None, :, c, None].expand(B, q, self.G, 1)
+            margin = low.gather(3, index) - up  # ℓ_c(θ) − u_i(θ), (B, q, G, S)
+            beaten |= domain_min(margin, out.domain) > self.tol_abs
+        return ~beaten & self.valid
+
+    def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
+        """``y (..., N)`` flat outputs → ``(..., G, S)``, ``fill`` where a group is short."""
+        return torch.where(self.valid, y[..., self.flat], fill)
+
+
+__all__ = ["Regions", "reachable_argmax"]

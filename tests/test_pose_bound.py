@@ -1,0 +1,97 @@
+"""kpstudy.pose_bound: the linearised pose bound over keypoint regions, and certify's record."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from data_gen.perturb import hull_vertices
+from kpstudy.allocation import allocate_tolerances
+from kpstudy.certify import certify
+from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.pose_bound import linearised_bound
+from kpstudy.train import load_checkpoint
+from tests.test_campaign import _seed, study  # noqa: F401  (the module fixture)
+
+
+def _random_sets(rng, K, most=5, spread=8.0):
+    return [rng.normal(0, spread, (rng.integers(1, most + 1), 2)) for _ in range(K)]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_bound_equals_brute_force_on_small_cases(seed):
+    rng = np.random.default_rng(seed)
+    K = 3
+    M = rng.normal(size=(6, 2 * K))
+    sets = _random_sets(rng, K, most=4)
+    combos = np.array(
+        [np.concatenate(c) for c in itertools.product(*sets)]
+    )  # (Π n_k, 2K): every combination
+    brute = np.abs(combos @ M.T).max(0)
+    bound, extremes = linearised_bound(M, sets)
+    np.testing.assert_allclose(bound, brute, rtol=1e-12, atol=1e-12)
+    # The extreme picks attain the maximum of each signed axis.
+    for axis in range(6):
+        for sign, row in ((1, extremes[2 * axis]), (-1, extremes[2 * axis + 1])):
+            value = sign * M[axis] @ np.concatenate([s[i] for s, i in zip(sets, row)])
+            assert value == pytest.approx(sign * (combos @ M[axis]).max() if sign > 0 else
+                                          -(combos @ M[axis]).min(), rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bound_covers_sampled_combinations_and_beats_the_triangle_bound(seed):
+    rng = np.random.default_rng(10 + seed)
+    K = 23
+    M = rng.normal(size=(6, 2 * K)) * 0.05
+    sets = _random_sets(rng, K, most=30)
+    bound, _ = linearised_bound(M, sets)
+    picks = [s[rng.integers(0, len(s), 4000)] for s in sets]  # (4000, 2) per keypoint
+    delta = np.concatenate(picks, axis=1)  # (4000, 2K) in u1, v1, u2, … order
+    assert np.all(np.abs(delta @ M.T) <= bound + 1e-12)
+    largest = np.concatenate([np.abs(s).max(0) for s in sets])  # max |δ_j| per coordinate
+    assert np.all(bound <= np.abs(M) @ largest + 1e-12)
+
+
+@pytest.mark.parametrize("alpha", [0.5, 1.0, 2.0])
+def test_regions_inside_the_allocated_cells_keep_the_allocation_verdict(alpha):
+    """With ground truth on pixel centres, any region inside the allocated cells gives a
+    bound inside Ξ: the pose-bound method verifies whatever the allocation verifies."""
+    rng = np.random.default_rng(int(alpha * 10))
+    K, factor = 23, 10.0  # image px per heatmap px
+    M_heatmap = rng.normal(size=(6, 2 * K)) * np.r_[[1.0] * 3, [0.3] * 3][:, None]
+    eps = alpha * np.r_[EPS_R, EPS_T]
+    dv = allocate_tolerances(M_heatmap, eps[:3], eps[3:], max_dv=64).dv  # (K, 2)
+    sets = []
+    for du, dv_ in dv:
+        cell = np.array([(u, v) for u in range(-du, du + 1) for v in range(-dv_, dv_ + 1)])
+        keep = rng.random(len(cell)) < 0.6
+        keep[rng.integers(len(cell))] = True
+        sets.append(cell[keep] * factor)  # image-pixel deviations
+    bound, _ = linearised_bound(M_heatmap / factor, sets)
+    assert np.all(bound <= eps + 1e-9)
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="^M"):
+        linearised_bound(np.zeros((6, 4)), [np.zeros((1, 2))])
+    with pytest.raises(ValueError, match=r"^deviations\[1\]"):
+        linearised_bound(np.zeros((6, 4)), [np.zeros((1, 2)), np.zeros((0, 2))])
+
+
+def test_certify_records_the_pose_bound_method(study):  # noqa: F811
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    huge = certify(backbone, vertices, seed, alpha=1e4, check_samples=0, pose_bound_timeout=5)
+    assert huge["pb_status"] == "holds" and huge["pb_counterexample"] is None
+    assert len(huge["pb_bound"]) == 6 and len(huge["pb_pixels"]) == 23
+    assert min(huge["pb_pixels"]) >= 1 and huge["pb_time"] > 0 and huge["pb_stride"] == 1
+    small = certify(backbone, vertices, seed, alpha=0.05, check_samples=0, pose_bound_timeout=5)
+    assert small["pb_bound"] == huge["pb_bound"]  # regions depend on the hull only
+    assert small["pb_status"] in ("violated", "unknown")
+    if small["pb_status"] == "violated":  # a two-epoch network: the seed's argmax pose is off
+        lam = np.asarray(small["pb_counterexample"])
+        assert np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
+    with pytest.raises(ValueError, match="^stride"):
+        certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_stride=2)

@@ -1,0 +1,116 @@
+"""reachable_argmax: sound supersets of each group's argmax, exact where the answer is known."""
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from kpstudy.verify import ConvexHull, Parallelotope, reachable_argmax
+from tests.verify_nets import MixedNet, PoolProxy, hull_vertices
+
+
+def sampled_argmax(model, input_set, group_sizes, count=2000):
+    """Per group, the set of argmax indices over Dirichlet, vertex and edge samples."""
+    lam = torch.cat(
+        [
+            input_set.sample(count, 1),
+            input_set.sample(count // 4, 2, "vertices"),
+            input_set.sample(count // 2, 3, "edges"),
+        ]
+    )
+    with torch.no_grad():
+        y = model(input_set.image(lam)).flatten(1)
+    out, lo = [], 0
+    for s in group_sizes:
+        out.append(set(y[:, lo : lo + s].argmax(1).tolist()))
+        lo += s
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("n", [1, 3, 6])
+def test_possible_sets_contain_every_sampled_argmax(seed, n):
+    model = MixedNet(seed)
+    hull = ConvexHull(hull_vertices(seed, n, (2, 8, 8), spread=0.5))
+    sizes = [3, 3]
+    regions = reachable_argmax(model, hull, sizes, timeout=5.0)
+    sampled = sampled_argmax(model, hull, sizes)
+    for g in range(2):
+        assert sampled[g] <= set(regions.possible[g].tolist())
+        assert set(regions.reached(g).tolist()) <= set(regions.possible[g].tolist())
+        for index, lam in regions.witnesses[g].items():  # every witness reproduces
+            assert bool(hull.contains_lambda(lam))
+            y = model(hull.image(lam[None])).flatten(1)[:, 3 * g : 3 * g + 3]
+            assert int(y.argmax()) == index
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pool_proxy_groups_of_unequal_size(seed):
+    model = PoolProxy(seed)
+    hull = ConvexHull(hull_vertices(seed, 3, (1, 10, 10), spread=0.4))
+    regions = reachable_argmax(model, hull, model.group_sizes, timeout=5.0, samples=0)
+    sampled = sampled_argmax(model, hull, model.group_sizes)
+    for g, size in enumerate(model.group_sizes):
+        possible = set(regions.possible[g].tolist())
+        assert sampled[g] <= possible and max(possible) < size
+
+
+def test_parallelotope_and_ibp_are_sound_too():
+    model = MixedNet(7)
+    box = Parallelotope(hull_vertices(7, 2, (2, 8, 8), spread=0.5))
+    regions = reachable_argmax(model, box, [2, 4], method="ibp", timeout=3.0)
+    sampled = sampled_argmax(model, box, [2, 4])
+    assert all(s <= set(p.tolist()) for s, p in zip(sampled, regions.possible))
+
+
+class Segment(nn.Module):
+    """On the segment λ ∈ [0, 1]: y = [1 − λ, λ, 0.2, −1] (group 0) and [λ, 0.3] (group 1).
+
+    Index 0 wins on λ < 1/2, index 1 on λ > 1/2; 0.2 and −1 never win. In group 1, 0.3
+    wins on λ < 0.3 and λ on λ > 0.3.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.fc = nn.Linear(1, 6).double()
+        with torch.no_grad():
+            self.fc.weight.copy_(torch.tensor([[-1.0], [1.0], [0.0], [0.0], [1.0], [0.0]]))
+            self.fc.bias.copy_(torch.tensor([1.0, 0.0, 0.2, -1.0, 0.0, 0.3]))
+
+    def forward(self, x):
+        return self.fc(x)
+
+
+def test_regions_are_exact_on_a_known_network():
+    hull = ConvexHull(torch.tensor([[0.0], [1.0]], dtype=torch.float64))
+    regions = reachable_argmax(Segment(), hull, [4, 2], samples=0)
+    assert regions.possible[0].tolist() == [0, 1]
+    assert regions.possible[1].tolist() == [0, 1]
+    assert regions.complete and not regions.stats["timed_out"]
+    assert regions.nodes > 1  # the root alone cannot drop index 2 (0.2 < 1/2 needs a split)
+    lam = regions.witnesses[0][1]
+    assert lam.item() > 0.5
+
+
+def test_a_spent_budget_keeps_the_sets_sound():
+    hull = ConvexHull(torch.tensor([[0.0], [1.0]], dtype=torch.float64))
+    regions = reachable_argmax(Segment(), hull, [4, 2], samples=0, max_nodes=1)
+    assert regions.stats["timed_out"]
+    assert {0, 1, 2} <= set(regions.possible[0].tolist())  # not yet refined, still sound
+    assert 3 not in regions.possible[0]  # −1 is beaten everywhere, even at the root
+    assert not regions.complete and regions.gap[0] >= 1
+
+
+def test_bad_input_is_named():
+    model = MixedNet(0)
+    hull = ConvexHull(hull_vertices(0, 2, (2, 8, 8)))
+    for kwargs, name in [
+        (dict(group_sizes=[3, 2]), "group_sizes"),
+        (dict(group_sizes=[6, 0]), "group_sizes"),
+        (dict(group_sizes=[6], method="crown"), "method"),
+        (dict(group_sizes=[6], timeout=0), "timeout"),
+        (dict(group_sizes=[6], candidates=0), "candidates"),
+    ]:
+        with pytest.raises(ValueError, match=f"^{name}"):
+            reachable_argmax(model, hull, **kwargs)
+    assert np.array_equal(reachable_argmax(model, hull, [6], timeout=2.0).gap.shape, (1,))
