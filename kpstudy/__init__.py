@@ -3,7 +3,8 @@
 Pose-side core (no neural network): :mod:`kpstudy.geometry`, :mod:`kpstudy.pnp`,
 :mod:`kpstudy.sensitivity`, :mod:`kpstudy.allocation`, :mod:`kpstudy.pooling`,
 :mod:`kpstudy.montecarlo`. Networks and the verifier: :mod:`kpstudy.models`,
-:mod:`kpstudy.train`, :mod:`kpstudy.verify`, :mod:`kpstudy.certify`. The study:
+:mod:`kpstudy.train`, :mod:`kpstudy.verify`, :mod:`kpstudy.certify`,
+:mod:`kpstudy.pose_bound`. The study:
 :mod:`kpstudy.campaign`, :mod:`kpstudy.tables`, :mod:`kpstudy.report`,
 :mod:`kpstudy.reproduce` and the notebooks. Conventions are those of DESIGN.md §3.
 """

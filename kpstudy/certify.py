@@ -35,8 +35,8 @@ from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import build_proxy
 from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
-from kpstudy.pose_bound import pose_bound
 from kpstudy.pooling import keypoint_pooling
+from kpstudy.pose_bound import pose_bound
 from kpstudy.preprocess import (
     normalise,
     resize_to_input,

@@ -59,6 +59,11 @@ def main(argv=None) -> int:
     ca.add_argument("--levels", type=float, nargs="+", help="b or c (global kinds; default all)")
     ca.add_argument("--seeds", type=int, help="first N seed images (default all)")
     ca.add_argument("--timeout", type=float, default=60.0, help="seconds per instance")
+    ca.add_argument(
+        "--pose-bound-timeout",
+        type=float,
+        help="also run the pose-bound method, this many seconds per hull",
+    )
     ca.add_argument("--method", default="auto", help="auto, ibp, forward or crown")
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
@@ -124,7 +129,13 @@ def _campaign(args) -> None:
     from kpstudy.campaign import Settings, grid, run_campaign
     from kpstudy.io import write_table
 
-    settings = Settings(args.checkpoint, args.data, args.method, args.timeout)
+    settings = Settings(
+        args.checkpoint,
+        args.data,
+        args.method,
+        args.timeout,
+        pose_bound_timeout=args.pose_bound_timeout,
+    )
     instances = grid(
         args.data,
         args.kind,

@@ -34,8 +34,10 @@ def test_bound_equals_brute_force_on_small_cases(seed):
     for axis in range(6):
         for sign, row in ((1, extremes[2 * axis]), (-1, extremes[2 * axis + 1])):
             value = sign * M[axis] @ np.concatenate([s[i] for s, i in zip(sets, row)])
-            assert value == pytest.approx(sign * (combos @ M[axis]).max() if sign > 0 else
-                                          -(combos @ M[axis]).min(), rel=1e-12)
+            assert value == pytest.approx(
+                sign * (combos @ M[axis]).max() if sign > 0 else -(combos @ M[axis]).min(),
+                rel=1e-12,
+            )
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -27,6 +27,7 @@ TINY = replace(
     resnet_seeds=1,
     timeout=5.0,
     resnet_timeout=5.0,
+    pose_bound_timeout=1.0,
     figure_images=2,
 )
 
@@ -63,6 +64,11 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     records = pd.read_csv(run / "tables" / "t_local_records.csv")
     assert local.instances.sum() == len(records) > 0
     assert (local.holds + local.violated + local.unknown == local.instances).all()
+    # The pose-bound method on the same instances, and what each method alone verifies.
+    assert (local.pb_holds <= local.instances).all() and local.pb_time_mean.gt(0).all()
+    assert {"pb_only", "allocation_only", "pb_verified_rate"} <= set(local.columns)
+    assert records.pb_status.isin(["holds", "violated", "unknown"]).all()
+    assert "Pose-bound method" in (run / "REPORT.md").read_text()
     glob = pd.read_csv(run / "tables" / "t_global.csv")
     assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 5 * 4
     assert glob.paper_time_mean.notna().all() and (glob.clipped_fraction >= 0).all()
