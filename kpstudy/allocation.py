@@ -31,7 +31,10 @@ removed from its bounds before the MILP is solved (reduced-cost bound tightening
 
 from __future__ import annotations
 
+import functools
+import multiprocessing
 import threading
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import cvxpy as cp
@@ -40,7 +43,7 @@ import scipy.sparse as sp
 
 from kpstudy._checks import float_array, positive
 
-__all__ = ["MAX_BOUND", "Allocation", "allocate_tolerances"]
+__all__ = ["MAX_BOUND", "Allocation", "allocate_many", "allocate_tolerances"]
 
 #: Largest per-coordinate bound (heatmap pixels) accepted (the model has 2K·(U+1) binaries).
 MAX_BOUND = 4096
@@ -234,6 +237,41 @@ def allocate_tolerances(
         eps_t=eps[3:].copy(),
         max_dv=ub.astype(np.int64).reshape(K, 2),
     )
+
+
+def allocate_many(problems, *, workers: int = 1, **options) -> list[Allocation]:
+    """:func:`allocate_tolerances` for many problems, in ``workers`` processes.
+
+    Parameters
+    ----------
+    problems : iterable of tuples
+        ``(M, eps_r, eps_t)`` or ``(M, eps_r, eps_t, kappa)`` each, as for
+        :func:`allocate_tolerances`.
+    workers : int
+        Processes (``spawn``, started once for the batch); HiGHS solves one model at a
+        time per process, so on a large batch the time per allocation falls about as
+        ``1 / workers``. Batches smaller than ``8 · workers`` run in this process.
+    **options :
+        ``w1``, ``w2``, ``max_dv`` (and ``kappa`` when the tuples have none).
+
+    Returns
+    -------
+    list of Allocation
+        In the order of ``problems``; each is the exact optimum, whatever ``workers`` is.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
+    problems = [tuple(p) for p in problems]
+    task = functools.partial(_allocate_one, options=options)
+    if workers == 1 or len(problems) < 8 * workers:
+        return [task(p) for p in problems]
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        return list(pool.map(task, problems, chunksize=max(1, len(problems) // (8 * workers))))
+
+
+def _allocate_one(problem: tuple, options: dict) -> Allocation:
+    return allocate_tolerances(*problem, **options)
 
 
 def _objective(x: np.ndarray, w1: float, w2: float) -> float:

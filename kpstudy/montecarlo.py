@@ -20,7 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from kpstudy import _checks
-from kpstudy.allocation import allocate_tolerances
+from kpstudy.allocation import allocate_many
 from kpstudy.geometry import (
     euler_from_matrix_torch,
     matrix_from_euler_torch,
@@ -153,6 +153,7 @@ def soundness_completeness_table(
     w2: float = 5.0,
     compile: bool = False,
     progress: bool = False,
+    workers: int = 1,
 ) -> pd.DataFrame:
     """The paper's T-prob grid: allocate per image, then both Monte Carlo fractions.
 
@@ -168,6 +169,8 @@ def soundness_completeness_table(
         Heatmap resize factors, tolerance cap (heatmap size) and allocation weights.
     compile, progress :
         Fuse the batched PnP (:func:`kpstudy.pnp.solve_pnp_batch`); show a progress bar.
+    workers : int
+        Processes for the allocations of the whole grid (:func:`kpstudy.allocation.allocate_many`).
 
     Returns
     -------
@@ -184,14 +187,13 @@ def soundness_completeness_table(
     M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=scale) for i in range(I)]
     rows = []
     grid = [(kappa, alpha) for kappa in kappas for alpha in alphas]
-    for kappa, alpha in tqdm(grid, desc="T-prob (kappa, alpha)", disable=not progress):
+    problems = [(m, a * EPS_R, a * EPS_T, k) for k, a in grid for m in M]
+    allocations = allocate_many(problems, workers=workers, w1=w1, w2=w2, max_dv=max_dv)
+    for c, (kappa, alpha) in enumerate(
+        tqdm(grid, desc="T-prob (kappa, alpha)", disable=not progress)
+    ):
         eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
-        dv = np.stack(
-            [
-                allocate_tolerances(m, eps_r, eps_t, kappa=kappa, w1=w1, w2=w2, max_dv=max_dv).dv
-                for m in M
-            ]
-        )
+        dv = np.stack([a.dv for a in allocations[c * I : (c + 1) * I]])
         args = (P, V, K, R, t, dv, eps_r, eps_t)
         s = probabilistic_soundness(
             *args, n_samples=n_samples, seed=seed, scale=scale, compile=compile

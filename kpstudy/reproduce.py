@@ -275,7 +275,9 @@ def run_notebooks(
             data_dir=data_dir, checkpoint=models[prof.symmetry_backbone], images=prof.figure_images
         ),
         "04_allocation": dict(data_dir=data_dir, images=prof.figure_images, seed=prof.seed),
-        "05_probabilistic": dict(images=prof.images, samples=prof.samples, seed=prof.seed),
+        "05_probabilistic": dict(
+            images=prof.images, samples=prof.samples, seed=prof.seed, workers=os.cpu_count() or 1
+        ),
         "06_local": dict(
             data_dir=data_dir,
             checkpoint=models["cnn"],

@@ -377,3 +377,21 @@ def test_bad_input(kwargs, name):
             args["w2"],
             max_dv=args["max_dv"],
         )
+
+
+def test_allocate_many_in_processes_equals_one_by_one():
+    rng = np.random.default_rng(42)
+    problems = [
+        (random_M(rng, 23), [10.0] * 3, [4.0, 4.0, 20.0], kappa)
+        for kappa in (1.0, 1.5)
+        for _ in range(10)
+    ]
+    pooled = allocation.allocate_many(problems, workers=2, max_dv=64)
+    for (M, eps_r, eps_t, kappa), a in zip(problems, pooled):
+        b = allocate_tolerances(M, eps_r, eps_t, kappa, max_dv=64)
+        assert np.array_equal(a.dv, b.dv) and a.objective == b.objective and a.kappa == kappa
+    with pytest.raises(ValueError, match="^workers"):
+        allocation.allocate_many(problems, workers=0)
+    bad = [*problems[:19], (np.full((6, 46), np.nan), [10.0] * 3, [4.0, 4.0, 20.0])]
+    with pytest.raises(ValueError, match="^M"):
+        allocation.allocate_many(bad, workers=2, max_dv=64)
