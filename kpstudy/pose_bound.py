@@ -155,7 +155,10 @@ def pose_bound(
     V = np.asarray(seed.keypoints, dtype=np.float64)
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
     key = (id(backbone), hashlib.sha1(hull.vertices.numpy().tobytes()).hexdigest())
-    regions, pixels, search_time = _regions(key, backbone, hull, centers, int(stride), timeout)
+    key += (centers.tobytes(), int(stride), float(timeout))
+    before = time.perf_counter() - start
+    regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, timeout)
+    start = time.perf_counter()  # the search is counted once, cached or not
     deviations = [to_image_pixels(p, factors) - v for p, v in zip(pixels, V)]
     bound, extremes = linearised_bound(M, deviations)
 
@@ -183,7 +186,7 @@ def pose_bound(
         "pb_status": status,
         "pb_bound": bound.tolist(),
         "pb_nonlinear": nonlinear.tolist(),
-        "pb_time": search_time + time.perf_counter() - start,
+        "pb_time": before + search_time + time.perf_counter() - start,
         "pb_nodes": regions.nodes,
         "pb_complete": regions.complete,
         "pb_pixels": [len(p) for p in pixels],
@@ -197,8 +200,8 @@ _CACHE: dict = {}
 
 def _regions(key, backbone, hull, centers, stride: int, timeout: float):
     """Possible pixels of each keypoint over ``hull`` and the search's seconds; the last
-    few are kept, since the instances of one hull (its α, κ cells) follow each other."""
-    key = (*key, stride, timeout)
+    few are kept, since the instances of one hull (its α, κ cells) follow each other.
+    An entry holds its backbone, so the ``id`` in its key cannot be reused meanwhile."""
     if key not in _CACHE:
         start = time.perf_counter()
         hm = backbone.heatmap_size
@@ -208,8 +211,8 @@ def _regions(key, backbone, hull, centers, stride: int, timeout: float):
         pixels = region_pixels(regions, pooling, hm)
         while len(_CACHE) >= 4:
             _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = (regions, pixels, time.perf_counter() - start)
-    return _CACHE[key]
+        _CACHE[key] = (backbone, regions, pixels, time.perf_counter() - start)
+    return _CACHE[key][1:]
 
 
 def _pose_errors(seed, V, R, t) -> np.ndarray:
