@@ -16,9 +16,10 @@ its axes and reports, per cell:
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
-  ``pb_holds``, ``pb_verified_rate`` (same denominator), ``pb_time_mean``, and
-  ``pb_only`` / ``allocation_only``: seeds inside Ξ that one method verifies and the
-  other does not.
+  ``pb_holds``, ``pb_verified_rate`` (same denominator), ``pb_time_mean``,
+  ``pb_nonlinear_outside`` (``holds`` whose PnP re-solved at region corners leaves Ξ: the
+  linearisation's error, which the allocation method shares) and ``pb_only`` /
+  ``allocation_only``: seeds inside Ξ that one method verifies and the other does not.
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ PAPER_T_PROB = {
 }
 
 _STATUSES = ("holds", "violated", "unknown")
+POSE_AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 
 
 def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -134,7 +136,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row.update({s: int((cell["status"] == s).sum()) for s in _STATUSES})
         row["violated_at_seed"] = int(
             sum(
-                status == "violated" and lam is not None and max(lam) <= 1e-9
+                status == "violated" and isinstance(lam, (list, str)) and max(_list(lam)) <= 1e-9
                 for status, lam in zip(
                     cell["status"], cell.get("counterexample", [None] * len(cell))
                 )
@@ -144,9 +146,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
         if "dv" in cell:
-            dv = np.concatenate(
-                [np.ravel(json.loads(v) if isinstance(v, str) else v) for v in cell["dv"]]
-            )
+            dv = np.concatenate([np.ravel(_list(v)) for v in cell["dv"]])
             row["dv_mean"] = float(dv.mean())
             row["dv_zero"] = float(np.mean(dv == 0))
         row["time_mean"] = float(cell["time"].mean())
@@ -158,6 +158,12 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
                 float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
             )
             row["pb_time_mean"] = float(cell["pb_time"].mean())
+            row["pb_nonlinear_outside"] = int(
+                sum(
+                    bool(ok) and np.any(np.asarray(_list(n)) > eps)
+                    for ok, n, eps in zip(pb, cell["pb_nonlinear"], _eps(cell))
+                )
+            )
             row["pb_only"] = int((pb & ~holds & inside).sum())
             row["allocation_only"] = int((holds & ~pb & inside).sum())
         rows.append(row)
@@ -174,8 +180,27 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "time_std",
     ]
     if "pb_status" in records:
-        columns += ["pb_holds", "pb_verified_rate", "pb_time_mean", "pb_only", "allocation_only"]
+        columns += [
+            "pb_holds",
+            "pb_verified_rate",
+            "pb_time_mean",
+            "pb_nonlinear_outside",
+            "pb_only",
+            "allocation_only",
+        ]
     return pd.DataFrame(rows, columns=columns)
+
+
+def _list(value) -> list:
+    """A list field of a record, as stored (a list) or read back from CSV (JSON text)."""
+    return json.loads(value) if isinstance(value, str) else value
+
+
+def _eps(cell: pd.DataFrame) -> list[np.ndarray]:
+    """Ξ's half-widths ``(6,)`` of each record, from its α."""
+    from kpstudy.montecarlo import EPS_R, EPS_T
+
+    return [a * np.r_[EPS_R, EPS_T] for a in cell["alpha"]]
 
 
 def t_prob(table: pd.DataFrame) -> pd.DataFrame:
@@ -280,9 +305,8 @@ def pose_bound_ratios(records: pd.DataFrame) -> pd.DataFrame:
 
     hull = [c for c in ("kind", "image_id", "m", "overlapping", "level") if c in records]
     rows = records.dropna(subset=["pb_bound"]).drop_duplicates(hull)
-    bound = np.array([json.loads(b) if isinstance(b, str) else b for b in rows["pb_bound"]])
-    axes = ["roll", "pitch", "yaw", "tx", "ty", "tz"]
-    out = pd.DataFrame(bound.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=axes)
+    bound = np.array([_list(b) for b in rows["pb_bound"]])
+    out = pd.DataFrame(bound.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=POSE_AXES)
     return pd.concat([rows[hull].reset_index(drop=True), out], axis=1)
 
 
@@ -295,15 +319,18 @@ def plot_pose_bounds(records: pd.DataFrame, title: str):
     import matplotlib.pyplot as plt
 
     ratios = pose_bound_ratios(records)
-    axes = ["roll", "pitch", "yaw", "tx", "ty", "tz"]
-    fig, ax = plt.subplots(figsize=(6, 3.5), layout="constrained")
-    if len(ratios):
-        ax.boxplot([ratios[a] for a in axes], tick_labels=axes)
+    fig, ax = plt.subplots(figsize=(6.5, 4), layout="constrained")
+    jitter = np.random.default_rng(0).uniform(-0.18, 0.18, len(ratios))
+    for i, a in enumerate(POSE_AXES):  # one point per hull: the distribution is often bimodal
+        ax.scatter(i + jitter, ratios[a], s=12, alpha=0.6, color="C0")
+        if len(ratios):
+            ax.hlines(ratios[a].median(), i - 0.3, i + 0.3, color="C1", lw=2)
+    ax.set_xticks(range(6), POSE_AXES)
     for level, style in ((1.0, "--"), (1.5, ":")):
         ax.axhline(level, color="k", ls=style, lw=0.8, label=f"inside Ξ at α = {level:g}")
     ax.set_yscale("log")
     ax.set_ylabel("certified bound ÷ ε (α = 1)")
-    ax.set_title(f"{title} ({len(ratios)} hulls)")
+    ax.set_title(f"{title}\n{len(ratios)} hulls, median in orange", fontsize="medium")
     ax.legend(fontsize="small")
     return fig
 

@@ -1,0 +1,52 @@
+"""kpstudy.tables on campaign records, as stored and as read back from CSV."""
+
+import io
+
+import numpy as np
+import pandas as pd
+
+from kpstudy import tables
+
+
+def _records():
+    rows = []
+    for image_id, (status, pb, lam, nonlinear) in enumerate(
+        [
+            ("violated", "holds", [0.0, 0.0], [1.0] * 6),  # pose bound only, nonlinear inside
+            ("violated", "holds", [0.2, 0.1], [20.0] * 6),  # nonlinear corner leaves Ξ
+            ("holds", "holds", None, [1.0] * 6),
+            ("violated", "unknown", [0.0, 0.0], [50.0] * 6),
+        ]
+    ):
+        rows.append(
+            dict(
+                kind="contrast",
+                level=5e-4,
+                image_id=image_id,
+                alpha=1.0,
+                kappa=1.0,
+                status=status,
+                time=0.1,
+                seed_inside=True,
+                counterexample=lam,
+                dv=[[1, 0]] * 23,
+                pb_status=pb,
+                pb_time=2.0,
+                pb_bound=[0.5 * image_id + 1.0] * 6,
+                pb_nonlinear=nonlinear,
+            )
+        )
+    return pd.DataFrame(rows)
+
+
+def test_pose_bound_columns_from_stored_and_csv_records():
+    stored = _records()
+    from_csv = pd.read_csv(io.StringIO(stored.to_csv(index=False)))
+    for records in (stored, from_csv):
+        row = tables.t_global(records).iloc[0]
+        assert (row.holds, row.violated, row.violated_at_seed) == (1, 3, 2)
+        assert row.pb_holds == 3 and row.pb_verified_rate == 0.75
+        assert (row.pb_only, row.allocation_only, row.pb_nonlinear_outside) == (2, 0, 1)
+        ratios = tables.pose_bound_ratios(records)
+        assert len(ratios) == 4
+        np.testing.assert_allclose(ratios.tz, (0.5 * np.arange(4) + 1.0) / 20.0)
