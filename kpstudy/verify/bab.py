@@ -164,14 +164,19 @@ def _check(method, timeout, max_nodes, batch, tol) -> str:
         method = "forward"
     if method not in METHODS:
         raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {method!r}")
+    check_budget(timeout, max_nodes, batch)
+    if not tol >= 0:
+        raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
+    return method
+
+
+def check_budget(timeout, max_nodes, batch) -> None:
+    """Refuse a search budget that is not seconds > 0 and optional positive counts."""
     if not timeout > 0:
         raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
     for name, v in (("max_nodes", max_nodes), ("batch", batch)):
         if v is not None and not (isinstance(v, int) and v >= 1):
             raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
-    if not tol >= 0:
-        raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
-    return method
 
 
 def _take(queue: list, batch: int):

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from kpstudy.verify.bab import _take
+from kpstudy.verify.bab import _take, check_budget
 from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
 from kpstudy.verify.graph import trace
 
@@ -135,11 +135,7 @@ def reachable_argmax(
         raise ValueError(
             f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
         )
-    if not timeout > 0:
-        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
-    for name, v in (("max_nodes", max_nodes), ("batch", batch)):
-        if v is not None and not (isinstance(v, int) and v >= 1):
-            raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
+    check_budget(timeout, max_nodes, batch)
     for name, v in (("candidates", candidates), ("samples", samples)):
         if not (isinstance(v, int) and v >= (1 if name == "candidates" else 0)):
             raise ValueError(
