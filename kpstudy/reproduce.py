@@ -268,6 +268,14 @@ def run_notebooks(
     models = {k: str(p.resolve()) for k, p in checkpoints(out).items()}
     data_dir = str(out / "data")
     campaign = dict(workers=prof.workers, scheduler=scheduler)
+    cnn_campaign = dict(
+        data_dir=data_dir,
+        checkpoint=models["cnn"],
+        seeds=prof.seeds,
+        timeout=prof.timeout,
+        pose_bound_timeout=prof.pose_bound_timeout,
+        **campaign,
+    )
     parameters = {
         "01_data": dict(data_dir=data_dir),
         "02_training": dict(data_dir=data_dir, checkpoints=models),
@@ -278,22 +286,8 @@ def run_notebooks(
         "05_probabilistic": dict(
             images=prof.images, samples=prof.samples, seed=prof.seed, workers=os.cpu_count() or 1
         ),
-        "06_local": dict(
-            data_dir=data_dir,
-            checkpoint=models["cnn"],
-            seeds=prof.seeds,
-            timeout=prof.timeout,
-            pose_bound_timeout=prof.pose_bound_timeout,
-            **campaign,
-        ),
-        "07_global": dict(
-            data_dir=data_dir,
-            checkpoint=models["cnn"],
-            seeds=prof.seeds,
-            timeout=prof.timeout,
-            pose_bound_timeout=prof.pose_bound_timeout,
-            **campaign,
-        ),
+        "06_local": cnn_campaign,
+        "07_global": cnn_campaign,
         "08_resnet": dict(
             data_dir=data_dir,
             checkpoint=models["resnet18"],
