@@ -11,10 +11,10 @@ with ``ℓ``, ``u`` the linear lower and upper bounds of the outputs in the node
 parameters (:func:`kpstudy.verify.bounds.propagate`) and the minimum taken exactly over
 the node's domain. The candidates are the ``candidates`` indices with the largest lower
 bounds, so the rule is never weaker than comparing intervals. The union of the nodes'
-undropped indices is the possible set. Witnesses come from the concrete model at every
-node's vertices and centroid (plus random points at the root): the argmax there is
-reached. A node is split while it keeps, for some group, an index not yet reached; the
-search ends when the possible and reached sets agree (``complete``) or the budget is spent.
+undropped indices is the possible set. Witnesses come from the concrete model at the
+set's corners, random points and every node's centre: the argmax there is reached. A
+node is split while it keeps, for some group, an index not yet reached; the search ends
+when the possible and reached sets agree (``complete``) or the budget is spent.
 """
 
 from __future__ import annotations
@@ -170,7 +170,8 @@ def reachable_argmax(
                 break
             nodes, parent, level = _take(queue, batch)
             depth = max(depth, level)
-            search.witness(input_set.node_points(nodes).reshape(-1, input_set.n))
+            points = input_set.node_points(nodes)  # corners (the root's), then the centre
+            search.witness((points if level == 0 else points[:, -1:]).reshape(-1, input_set.n))
             kept = search.undominated(nodes) & parent  # (B, G, S)
             nodes_done += len(nodes)
             open_ = (kept & ~search.reached).flatten(1).any(1)
