@@ -26,6 +26,8 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from kpstudy.io import source_fingerprint
+
 __all__ = ["Instance", "ResultStore", "Settings", "grid", "run_campaign", "store_path"]
 
 GLOBAL_KINDS = ("brightness", "contrast")
@@ -196,8 +198,9 @@ class ResultStore:
 
 def store_path(folder, name: str, settings: Settings) -> Path:
     """``folder/<name>-<fingerprint>.sqlite``, the fingerprint hashing the checkpoint's
-    bytes, the dataset's annotations and perturbation sets and the other settings: records
-    of a retrained model or of other settings never mix with these."""
+    bytes, the dataset's annotations and perturbation sets, the other settings and the
+    code (:func:`kpstudy.io.source_fingerprint`): records of a retrained model, of other
+    settings or of changed code never mix with these."""
     import hashlib
 
     _check_settings(settings)
@@ -211,6 +214,7 @@ def store_path(folder, name: str, settings: Settings) -> Path:
         digest.update(path.read_bytes())
     rest = {k: v for k, v in asdict(settings).items() if k not in ("checkpoint", "data_dir")}
     digest.update(json.dumps(rest, sort_keys=True).encode())
+    digest.update(source_fingerprint().encode())
     return Path(folder) / f"{name}-{digest.hexdigest()[:12]}.sqlite"
 
 

@@ -29,7 +29,7 @@ import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
-from kpstudy.io import write_text_atomic
+from kpstudy.io import source_fingerprint, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
@@ -324,8 +324,9 @@ def run_notebooks(
 
 
 def _signature(notebook: Path, params: dict) -> dict:
-    """What a notebook's outputs depend on: its source, its parameters and the files named
-    in them (size and modification time)."""
+    """What a notebook's outputs depend on: its source, kpstudy's and data_gen's code
+    (:func:`kpstudy.io.source_fingerprint`), its parameters and the files named in them
+    (size and modification time)."""
     files = {}
     for value in _values(params):
         path = Path(value) if isinstance(value, str) else None
@@ -339,6 +340,7 @@ def _signature(notebook: Path, params: dict) -> dict:
             files[str(member)] = [stat.st_size, stat.st_mtime_ns]
     return {
         "notebook": hashlib.sha256(notebook.read_bytes()).hexdigest(),
+        "code": source_fingerprint(),
         "parameters": params,
         "files": files,
     }

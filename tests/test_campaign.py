@@ -192,7 +192,7 @@ def test_run_instance_reports_the_clipped_fraction(study):
     assert blocks["clipped_fraction"] == 0.0
 
 
-def test_store_paths_separate_models_and_settings(study, tmp_path):
+def test_store_paths_separate_models_and_settings(study, tmp_path, monkeypatch):
     data, checkpoint = study
     settings = Settings(str(checkpoint), str(data), timeout=5)
     path = store_path(tmp_path, "objects", settings)
@@ -204,3 +204,5 @@ def test_store_paths_separate_models_and_settings(study, tmp_path):
     state["epoch"] += 1
     torch.save(state, other)
     assert path != store_path(tmp_path, "objects", Settings(str(other), str(data), timeout=5))
+    monkeypatch.setattr("kpstudy.campaign.source_fingerprint", lambda: "other code")
+    assert path != store_path(tmp_path, "objects", settings)

@@ -111,6 +111,16 @@ def test_bad_profiles_are_refused_before_any_work(overrides, message):
         profile("quick", **overrides)
 
 
+def test_a_code_change_makes_every_notebook_stale(monkeypatch):
+    from kpstudy import reproduce as module
+
+    source = NOTEBOOKS / "05_probabilistic.ipynb"
+    before = module._signature(source, {"images": 2})
+    assert before == module._signature(source, {"images": 2})
+    monkeypatch.setattr(module, "source_fingerprint", lambda: "other code")
+    assert module._signature(source, {"images": 2}) != before
+
+
 @pytest.mark.parametrize("name", [s[1] for s in SECTIONS])
 def test_notebooks_in_git_are_stripped_and_parameterised(name):
     import nbformat
