@@ -11,7 +11,10 @@ Each seed image gets a nominal keypoint per channel (the backbone's heatmap argm
 proxy pooling of stride 5 (δv = 2), targets the cells that win on the seed, and hulls of
 the seed and m = 2, 3, 4 occluded copies (a uniform-colour square pasted at a random
 place) or, with ``--perturbation brightness``, the paper's brightness hulls
-``[x, clip(x + b), clip(x − b)]`` (b = 1, 2 of 255: keys ``…/1``, ``…/2``). Every instance
+``[x, clip(x + b), clip(x − b)]`` (b = 1, 2 of 255: keys ``…/1``, ``…/2``), or with
+``--perturbation objects|blocks|contrast`` the study's own perturbation sets of ``--data``
+(``python -m data_gen perturb``: pasted apron occluders, pixel blocks, contrast levels; keys
+``…/2/non-overlapping``, ``…/0.0005``; seeds are the sets' seed images). Every instance
 is run for each bound method, on the exact :class:`ConvexHull` and on the
 :class:`Parallelotope` baseline (ModelVerification.jl's treatment of a hull), with one
 timeout. Peak memory is the process's peak resident set during the instance.
@@ -34,6 +37,8 @@ from kpstudy.pooling import keypoint_pooling
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
 
+STUDY_KINDS = ("objects", "blocks", "contrast")
+
 
 def seed_image(g: torch.Generator) -> torch.Tensor:
     """A smooth random image ``(3, 64, 64)`` in [0, 1]."""
@@ -53,26 +58,33 @@ def brightness(x: torch.Tensor, b: float) -> torch.Tensor:
     return (x + b / 255.0).clamp(0.0, 1.0)
 
 
+def proxy_instance(net, x0: torch.Tensor):
+    """The bench's proxy and spec for seed ``x0 (3, 64, 64)``: a nominal keypoint per
+    channel at the backbone's heatmap argmax, δv = 2 cells, targets the cells that win on
+    the seed (so the property holds at ``x0``)."""
+    with torch.no_grad():
+        idx = net(x0[None])[0].flatten(1).argmax(1)
+    centers = torch.stack([idx % 64, idx // 64], 1).tolist()
+    proxy = build_proxy(net, keypoint_pooling(centers, [(2, 2)] * len(centers), (64, 64)))
+    spec = ArgmaxSpec([p.n_v * p.n_h for p in proxy.pools], [0] * len(centers))
+    with torch.no_grad():
+        y = proxy(x0[None])[0]
+    wins = [int(y[a:b].argmax()) for a, b in zip(spec.offsets[:-1], spec.offsets[1:])]
+    return proxy, ArgmaxSpec(spec.group_sizes, wins)
+
+
 def instances(
     net, count: int, ms, seed: int, perturbation: str = "occlusion", images=None, square: int = 10
 ):
-    """``count`` seeds × hull sizes: (m, proxy, spec, vertices). Occlusion hulls have
-    ``m`` in ``ms`` occluded copies; brightness hulls are ``[x, x + b, x − b]`` for
-    ``b`` = 1, 2 (labelled m = b). Seeds are ``images`` ``(N, 3, 64, 64)`` in [0, 1] when
+    """``count`` seeds × hull sizes: (label, proxy, spec, vertices). Occlusion hulls have
+    ``m`` in ``ms`` occluded copies (label m); brightness hulls are ``[x, x + b, x − b]``
+    for ``b`` = 1, 2 (label b). Seeds are ``images`` ``(N, 3, 64, 64)`` in [0, 1] when
     given, else smooth random images."""
     g = torch.Generator().manual_seed(seed)
     out = []
     for i in range(count):
         x0 = seed_image(g) if images is None else images[i]
-        with torch.no_grad():
-            idx = net(x0[None])[0].flatten(1).argmax(1)
-        centers = torch.stack([idx % 64, idx // 64], 1).tolist()
-        proxy = build_proxy(net, keypoint_pooling(centers, [(2, 2)] * len(centers), (64, 64)))
-        spec = ArgmaxSpec([p.n_v * p.n_h for p in proxy.pools], [0] * len(centers))
-        with torch.no_grad():  # targets: the cells that win on the seed (holds at X0)
-            y = proxy(x0[None])[0]
-        wins = [int(y[a:b].argmax()) for a, b in zip(spec.offsets[:-1], spec.offsets[1:])]
-        spec = ArgmaxSpec(spec.group_sizes, wins)
+        proxy, spec = proxy_instance(net, x0)
         if perturbation == "brightness":
             for b in (1, 2):
                 V = torch.stack([x0, brightness(x0, b), brightness(x0, -b)])
@@ -82,6 +94,41 @@ def instances(
             out.append(
                 (m, proxy, spec, torch.stack([x0] + [occluded(x0, g, square) for _ in range(m)]))
             )
+    return out
+
+
+def study_instances(net, data: Path, kind: str, count: int, ms, seed: int):
+    """Hulls of the study's own perturbation sets (``python -m data_gen perturb``) at the
+    model input: (label, proxy, spec, vertices) for the first ``count`` seed images.
+    Objects and blocks: ``m`` in ``ms`` non-overlapping and overlapping images (label
+    ``m/non-overlapping`` …, where the set has that many); contrast: every stored level
+    (label the level). (The study's brightness set is ``--perturbation brightness``.)"""
+    from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
+    from kpstudy.preprocess import normalise, resize_to_input
+
+    rows = load_perturbations(data, kind)["images"]
+    out = []
+    for image_id in sorted({r["image_id"] for r in rows})[:count]:
+        mine = [r for r in rows if r["image_id"] == image_id]
+        if kind in DEFAULT_LEVELS:
+            hulls = [
+                (f"{level:g}", hull_vertices(data, image_id, kind, level=level))
+                for level in sorted({r["level"] for r in mine})
+            ]
+        else:
+            hulls = [
+                (
+                    f"{m}/{'' if overlap else 'non-'}overlapping",
+                    hull_vertices(data, image_id, kind, m, overlap, seed),
+                )
+                for overlap in (False, True)
+                for m in ms
+                if m <= sum(r["overlapping"] == overlap for r in mine)
+            ]
+        for label, V in hulls:
+            x = normalise(np.stack([resize_to_input(v, 64) for v in V]))
+            x = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+            out.append((label, *proxy_instance(net, x[0]), x))
     return out
 
 
@@ -115,11 +162,18 @@ def main(argv=None):
     ap.add_argument("--checkpoint", type=Path, help="a CNN checkpoint of python -m kpstudy train")
     ap.add_argument("--data", type=Path, help="dataset whose test images are the seeds")
     ap.add_argument("--seeds", type=int, default=4, help="seed images")
-    ap.add_argument("--methods", nargs="+", default=["forward", "ibp"])
+    ap.add_argument("--methods", nargs="+", default=["zonotope", "forward"])
     ap.add_argument("--timeout", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--square", type=int, default=10, help="occluding square side, pixels")
-    ap.add_argument("--perturbation", choices=["occlusion", "brightness"], default="occlusion")
+    ap.add_argument(
+        "--perturbation",
+        choices=["occlusion", "brightness", *STUDY_KINDS],
+        default="occlusion",
+        help="random squares or the paper's brightness hulls [x, x+b, x-b] (b = 1, 2) on "
+        "the test images of --data, or one of the study's perturbation sets of --data "
+        "(python -m data_gen perturb)",
+    )
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
     if args.checkpoint:
@@ -129,10 +183,17 @@ def main(argv=None):
         calibrate_batch_norm(net, args.seed)
     net.eval()
     images = None
-    if args.data:
+    if args.data and args.perturbation not in STUDY_KINDS:
         data = load_keypoint_set(args.data, "test", 64, limit=args.seeds)
         images = torch.from_numpy(data.images).permute(0, 3, 1, 2) / 255.0
-    cases = instances(net, args.seeds, (2, 3, 4), args.seed, args.perturbation, images, args.square)
+    if args.perturbation in STUDY_KINDS:
+        if not args.data:
+            raise SystemExit("--data: needed for the study's perturbation sets")
+        cases = study_instances(net, args.data, args.perturbation, args.seeds, (2, 3, 4), args.seed)
+    else:
+        cases = instances(
+            net, args.seeds, (2, 3, 4), args.seed, args.perturbation, images, args.square
+        )
     rows = []
     for set_type in (ConvexHull, Parallelotope):
         for method in args.methods:

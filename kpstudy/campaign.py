@@ -72,9 +72,9 @@ class Settings:
         Hull images through the target model for ``holds`` records.
     hull_seed : int
         Which ``m`` perturbed images make a local hull.
-    pose_bound_timeout, pose_bound_stride :
-        The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`);
-        ``None`` skips it.
+    pose_bound_timeout, pose_bound_stride, pose_bound_method :
+        The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`):
+        seconds per hull (``None`` skips it), cell side, bound method.
     """
 
     checkpoint: str
@@ -85,6 +85,7 @@ class Settings:
     hull_seed: int = 0
     pose_bound_timeout: float | None = None
     pose_bound_stride: int = 1
+    pose_bound_method: str = "forward"
 
 
 def grid(
@@ -314,6 +315,7 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
         check_samples=settings.check_samples,
         pose_bound_timeout=settings.pose_bound_timeout,
         pose_bound_stride=settings.pose_bound_stride,
+        pose_bound_method=settings.pose_bound_method,
     )
     clipped = 0.0
     if instance.kind in GLOBAL_KINDS:
@@ -370,6 +372,13 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
+    from kpstudy.verify.reachable import METHODS as REGION_METHODS
+
+    if settings.pose_bound_method not in REGION_METHODS:
+        raise ValueError(
+            f"pose_bound_method: expected one of {REGION_METHODS}, "
+            f"got {settings.pose_bound_method!r}"
+        )
 
 
 def _positive_list(values, name: str) -> list[float]:

@@ -117,6 +117,7 @@ def certify(
     sample_seed: int = 0,
     pose_bound_timeout: float | None = None,
     pose_bound_stride: int = 1,
+    pose_bound_method: str = "forward",
 ) -> dict:
     """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
 
@@ -142,6 +143,8 @@ def certify(
         keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
     pose_bound_stride : int
         Its cell side in heatmap pixels (1: the argmax pixel itself).
+    pose_bound_method : str
+        Its bound method (``'forward'`` or ``'zonotope'``).
 
     Returns
     -------
@@ -228,6 +231,7 @@ def certify(
                 kappa=kappa,
                 stride=pose_bound_stride,
                 timeout=pose_bound_timeout,
+                method=pose_bound_method,
                 sample_seed=sample_seed,
             )
         )

@@ -64,7 +64,14 @@ def main(argv=None) -> int:
         type=float,
         help="also run the pose-bound method, this many seconds per hull",
     )
-    ca.add_argument("--method", default="auto", help="auto, ibp, forward or crown")
+    ca.add_argument(
+        "--method", default="auto", help="auto (zonotope), ibp, forward, crown or zonotope"
+    )
+    ca.add_argument(
+        "--pose-bound-method",
+        default="forward",
+        help="bounds of the pose-bound method's regions: forward, zonotope or ibp",
+    )
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
     ca.add_argument("--out", help="also write the records as OUT.csv and OUT.md")
@@ -135,6 +142,7 @@ def _campaign(args) -> None:
         args.method,
         args.timeout,
         pose_bound_timeout=args.pose_bound_timeout,
+        pose_bound_method=args.pose_bound_method,
     )
     instances = grid(
         args.data,

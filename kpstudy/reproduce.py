@@ -50,6 +50,8 @@ class Profile:
     timeout, resnet_timeout : verification seconds per instance.
     pose_bound_timeout : seconds per hull for the pose-bound method's keypoint regions
         (T-local and T-global, beside the allocation method).
+    pose_bound_method : their bounds (``'forward'``; ``'zonotope'`` is far tighter on the
+        CNN but takes tens of seconds per node on 2 CPU cores).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
     workers : local processes per campaign.
@@ -70,6 +72,7 @@ class Profile:
     cnn_images: int | None = None
     resnet_images: int | None = None
     pose_bound_timeout: float = 2.0
+    pose_bound_method: str = "forward"
     symmetry_backbone: str = "cnn"
     figure_images: int = 50
     workers: int = 1
@@ -78,7 +81,8 @@ class Profile:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("name", "dataset_size", "symmetry_backbone", "seed") or value is None:
+            text = ("name", "dataset_size", "symmetry_backbone", "pose_bound_method", "seed")
+            if f.name in text or value is None:
                 continue
             if isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
@@ -86,6 +90,11 @@ class Profile:
             raise ValueError(
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
+            )
+        if self.pose_bound_method not in ("forward", "zonotope", "ibp"):
+            raise ValueError(
+                "pose_bound_method: expected 'forward', 'zonotope' or 'ibp', "
+                f"got {self.pose_bound_method!r}"
             )
         if self.symmetry_backbone not in ("cnn", "resnet18"):
             raise ValueError(
@@ -123,6 +132,7 @@ PROFILES = {
         timeout=600.0,
         resnet_timeout=3600.0,
         pose_bound_timeout=600.0,
+        pose_bound_method="zonotope",
         symmetry_backbone="resnet18",
         figure_images=3000,
     ),
@@ -274,6 +284,7 @@ def run_notebooks(
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound_timeout=prof.pose_bound_timeout,
+        pose_bound_method=prof.pose_bound_method,
         **campaign,
     )
     parameters = {

@@ -97,3 +97,17 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
         assert np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
     with pytest.raises(ValueError, match="^stride"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_stride=2)
+    # The regions from zonotope bounds, recorded as such.
+    zono = certify(
+        backbone,
+        vertices,
+        seed,
+        alpha=1e4,
+        check_samples=0,
+        pose_bound_timeout=5,
+        pose_bound_method="zonotope",
+    )
+    assert zono["pb_method"] == "zonotope" and huge["pb_method"] == "forward"
+    assert zono["pb_status"] == "holds" and len(zono["pb_pixels"]) == 23
+    with pytest.raises(ValueError, match="^method"):
+        certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")

@@ -42,12 +42,13 @@ def _check_counterexample(net, s, spec, result):
 
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("set_type", [ConvexHull, Parallelotope])
-def test_verify_is_sound_and_decides_mixed_nets(seed, set_type):
+@pytest.mark.parametrize("method", ["forward", "zonotope"])
+def test_verify_is_sound_and_decides_mixed_nets(seed, set_type, method):
     net = MixedNet(seed)
     V = hull_vertices(seed, 1 + seed % 4, (2, 8, 8), spread=0.05 + 0.05 * (seed % 3))
     spec = _spec_at_seed(net, V[0], [3, 3])
     s = set_type(V)
-    result = verify(net, s, spec, timeout=30)
+    result = verify(net, s, spec, method=method, timeout=30)
     assert result.status in ("holds", "violated")  # complete on these small instances
     if result.status == "holds":
         assert not _sampled_violation(net, s, spec, seed)
@@ -74,7 +75,8 @@ def test_verify_proxy_with_excluded_group(seed):
 def test_branching_proves_what_the_root_cannot():
     """y0 = relu(x) beats y1 = relu(x) − 0.1 on x ∈ [−1, 1]. Intervals lose the correlation
     (the margin's interval bound is relu(a) − relu(b) + 0.1 on [a, b]) until nodes are
-    narrower than 0.1; CROWN's backward pass keeps it and proves the root."""
+    narrower than 0.1; CROWN's backward pass and the zonotope's shared error symbol keep it
+    and prove the root."""
     net = nn.Sequential(nn.Linear(1, 2), nn.ReLU(), nn.Linear(2, 2)).double().eval()
     with torch.no_grad():
         net[0].weight.copy_(torch.tensor([[1.0], [-1.0]]))
@@ -88,6 +90,8 @@ def test_branching_proves_what_the_root_cannot():
     result = verify(net, hull, spec, method="ibp")
     assert result.status == "holds" and result.nodes > 16
     assert verify(net, hull, spec, method="crown").nodes == 1
+    # The zonotope's error symbol is shared by y0 and y1, so their margin is exact.
+    assert verify(net, hull, spec, method="zonotope").nodes == 1
 
 
 def test_violation_found_in_the_middle_of_the_hull():
@@ -117,6 +121,21 @@ def test_budget_gives_unknown_not_holds():
     result = verify(net, ConvexHull(V), spec, max_nodes=1, attack_steps=0)
     assert result.status in ("unknown", "violated")
     assert result.nodes <= 1
+
+
+def test_timeout_inside_a_node_leaves_it_open(monkeypatch):
+    """A zonotope node on a large network can take minutes: the deadline is checked
+    between layers, and the node stays open ('unknown', never 'holds')."""
+    from kpstudy.verify import bounds
+
+    net = MixedNet(3)
+    V = hull_vertices(3, 2, (2, 8, 8), spread=0.05)
+    spec = _spec_at_seed(net, V[0], [3, 3])
+    ticks = iter(range(10**6))  # a clock that jumps 1 s per reading
+    monkeypatch.setattr(bounds.time, "perf_counter", lambda: float(next(ticks)))
+    result = verify(net, ConvexHull(V), spec, method="zonotope", timeout=5.0)
+    assert result.status == "unknown" and result.stats["timed_out"]
+    assert result.nodes == 0 and result.group_status == ["unknown", "unknown"]
 
 
 def test_bad_input_is_named():

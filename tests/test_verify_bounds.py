@@ -11,7 +11,7 @@ from torch import nn
 from kpstudy.verify import Box, ConvexHull, Parallelotope, output_bounds
 from tests.verify_nets import MixedNet, PoolProxy, hull_vertices, mlp
 
-METHODS = ("ibp", "forward", "crown")
+METHODS = ("ibp", "forward", "crown", "zonotope")
 
 
 def _sample_images(input_set, seed):
@@ -174,15 +174,74 @@ def test_crown_no_wider_than_ibp_and_forward_on_average():
     assert np.mean(widths["crown"]) <= np.mean(widths["forward"]) <= np.mean(widths["ibp"])
 
 
+def test_zonotope_stays_tight_where_forward_bounds_blow_up():
+    """A deep narrow ReLU network and a small hull (the trained CNN's situation): forward
+    radii grow as |W| per layer, the zonotope's shared error symbols keep their signs."""
+    net = mlp(3, sizes=(8,) + (24,) * 10 + (4,))
+    V = hull_vertices(3, 2, (8,), spread=0.02, dtype=torch.float64)
+    hull = ConvexHull(V)
+    with torch.no_grad():
+        y = net(hull.image(hull.sample(2000, 0)))
+    width = {}
+    for method in ("forward", "zonotope"):
+        lo, hi = output_bounds(net, hull, method)
+        assert (y >= lo - 1e-9).all() and (y <= hi + 1e-9).all()
+        width[method] = (hi - lo).mean().item()
+    assert width["zonotope"] < 0.5 * width["forward"]
+
+
+def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+
+    def widths(net, hull, y):
+        graph = trace(net, hull.vertices[:1])
+        region = B.root_region(hull, graph.dtype)
+        q, out = region.mid.shape[1], []
+        for budget in (0, 5, None):
+            stacks, _ = B.propagate(graph, region, zonotope=True, max_generators=budget)
+            assert stacks.mid.shape[1] - q <= (
+                B.symbol_budget(graph, q) if budget is None else budget
+            )
+            lo, hi = B._interval(stacks.mid, stacks.rad, q, "simplex")
+            slack = 1e-5 * (1 + y.abs().max())
+            assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all(), budget
+            out.append((hi - lo).mean().item())
+        return out
+
+    with torch.no_grad():
+        hull = ConvexHull(hull_vertices(4, 3, (2, 8, 8), spread=0.3))
+        widths(MixedNet(seed=4), hull, MixedNet(seed=4)(_sample_images(hull, seed=4)))
+        net = mlp(5, sizes=(8,) + (24,) * 6 + (4,))
+        hull = ConvexHull(hull_vertices(5, 2, (8,), spread=0.5, dtype=torch.float64))
+        none, few, full = widths(net, hull, net(_sample_images(hull, seed=5)))
+    # Symbols a relaxation error cannot share are boxed: every budget is sound, fewer
+    # symbols are looser (on a ReLU network; max pooling concretises either way).
+    assert none >= few >= full and none > 1.5 * full
+
+
 def test_bounds_are_exact_on_a_linear_network():
     net = nn.Sequential(nn.Conv2d(2, 3, 3), nn.Flatten(), nn.Linear(3 * 6 * 6, 4)).double().eval()
     V = hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64)
     with torch.no_grad():
         y = net(V)  # a linear map's extremes over a hull are at its vertices
-    for method in ("forward", "crown"):
+    for method in ("forward", "crown", "zonotope"):
         lo, hi = output_bounds(net, ConvexHull(V), method)
         torch.testing.assert_close(lo, y.min(0).values)
         torch.testing.assert_close(hi, y.max(0).values)
+
+
+def test_batch_norm_is_folded_into_the_convolution_that_feeds_it():
+    from kpstudy.verify.graph import trace
+
+    net = MixedNet(seed=2)
+    x = hull_vertices(2, 3, (2, 8, 8))
+    graph = trace(net, x[:1])
+    names = [n.name for n in graph.nodes]
+    assert "conv1+bn" in names
+    assert not any(type(n.op).__name__ == "BatchNorm" for n in graph.nodes)
+    with torch.no_grad():
+        torch.testing.assert_close(graph.forward(x), net(x), rtol=1e-5, atol=1e-5)
 
 
 def test_unsupported_layer_is_named():

@@ -29,11 +29,12 @@ def sampled_argmax(model, input_set, group_sizes, count=2000):
 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("n", [1, 3, 6])
-def test_possible_sets_contain_every_sampled_argmax(seed, n):
+@pytest.mark.parametrize("method", ["forward", "zonotope"])
+def test_possible_sets_contain_every_sampled_argmax(seed, n, method):
     model = MixedNet(seed)
     hull = ConvexHull(hull_vertices(seed, n, (2, 8, 8), spread=0.5))
     sizes = [3, 3]
-    regions = reachable_argmax(model, hull, sizes, timeout=5.0)
+    regions = reachable_argmax(model, hull, sizes, method=method, timeout=5.0)
     sampled = sampled_argmax(model, hull, sizes)
     for g in range(2):
         assert sampled[g] <= set(regions.possible[g].tolist())
@@ -45,10 +46,13 @@ def test_possible_sets_contain_every_sampled_argmax(seed, n):
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_pool_proxy_groups_of_unequal_size(seed):
+@pytest.mark.parametrize("method", ["forward", "zonotope"])
+def test_pool_proxy_groups_of_unequal_size(seed, method):
     model = PoolProxy(seed)
     hull = ConvexHull(hull_vertices(seed, 3, (1, 10, 10), spread=0.4))
-    regions = reachable_argmax(model, hull, model.group_sizes, timeout=5.0, samples=0)
+    regions = reachable_argmax(
+        model, hull, model.group_sizes, method=method, timeout=5.0, samples=0
+    )
     sampled = sampled_argmax(model, hull, model.group_sizes)
     for g, size in enumerate(model.group_sizes):
         possible = set(regions.possible[g].tolist())

@@ -6,7 +6,8 @@ ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
 :func:`output_bounds` with ``'ibp'``, ``'forward'`` or ``'crown'``; :func:`verify` returns
 a :class:`Result` — ``holds``, ``violated`` with a re-checked counterexample, or
 ``unknown``; :func:`reachable_argmax` returns sound sets of the indices each keypoint's
-argmax can take (:class:`Regions`), with witnesses; :func:`export_instance` writes
+argmax can take (:class:`Regions`), with witnesses; :func:`bound_profile` shows, node by
+node, how far a method's bounds are from the sampled range; :func:`export_instance` writes
 ONNX + VNN-LIB for other verifiers and :func:`export_onnx` a plain network (a backbone,
 a proxy).
 """
@@ -14,6 +15,7 @@ a proxy).
 from kpstudy.verify.bab import verify
 from kpstudy.verify.bounds import output_bounds
 from kpstudy.verify.export import export_instance, export_onnx, read_vnnlib_polytope
+from kpstudy.verify.profile import bound_profile
 from kpstudy.verify.reachable import Regions, reachable_argmax
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
@@ -27,6 +29,7 @@ __all__ = [
     "Parallelotope",
     "Regions",
     "Result",
+    "bound_profile",
     "export_instance",
     "export_onnx",
     "output_bounds",

@@ -17,7 +17,14 @@ import time
 
 import torch
 
-from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
+from kpstudy.verify.bounds import (
+    METHODS,
+    BoundsTimeout,
+    example_input,
+    node_region,
+    row_bounds,
+    symbol_budget,
+)
 from kpstudy.verify.graph import trace
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.spec import ArgmaxSpec
@@ -46,15 +53,20 @@ def verify(
         output has ``spec.n_outputs`` entries.
     input_set : ConvexHull, Parallelotope or Box
     spec : ArgmaxSpec
-    method : {'auto', 'ibp', 'forward', 'crown'}
-        Bounds at each node; ``'auto'`` is ``'forward'`` (the cheapest method that keeps
-        the margins' dependence on λ; ``'crown'`` costs a backward pass per margin row).
+    method : {'auto', 'ibp', 'forward', 'crown', 'zonotope'}
+        Bounds at each node (:mod:`kpstudy.verify.bounds`). ``'auto'`` is ``'zonotope'``:
+        a forward pass per unstable ReLU, but on a trained CNN the only one whose bounds
+        stay near the sampled range (``'forward'`` is the cheapest that keeps the margins'
+        dependence on λ, but grows ~10× per layer there; ``'crown'`` costs a backward
+        pass per margin row).
     timeout : float
-        Seconds before the search stops with ``'unknown'``.
+        Seconds before the search stops with ``'unknown'`` (checked between nodes and,
+        inside a node's bounds, between layers).
     max_nodes : int, optional
         Most nodes to bound.
     batch : int, optional
-        Nodes bounded together (default: as many as fit in ``memory`` elements).
+        Nodes bounded together (default: as many as fit in ``memory`` elements, counting
+        a zonotope's error symbols).
     tol : float
         Margin lower bounds must exceed ``tol · (1 + max |y(X0)|)`` to close a group;
         those between zero and that are recomputed in float64 (for a float64 model,
@@ -82,11 +94,13 @@ def verify(
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
-    search = _Search(model, graph, input_set, spec, method, tol, memory)
+    search = _Search(model, graph, input_set, spec, method, tol, memory, start + timeout)
     if batch is None:  # coefficient stacks (centre and radius) of the largest value
-        q = input_set.n + 1 if input_set.domain != "box" else 1
+        rows = input_set.n + 1 if input_set.domain != "box" else 1
+        if method == "zonotope":  # plus its error symbols
+            rows += symbol_budget(graph, rows)
         biggest = max(math.prod(n.shape) for n in graph.nodes)
-        batch = max(1, min(64, memory // (2 * q * biggest)))
+        batch = max(1, min(64, memory // (2 * rows * biggest)))
     G = spec.n_groups
     open_groups = torch.zeros(G, dtype=torch.bool)
     open_groups[spec.active_groups] = True
@@ -114,7 +128,12 @@ def verify(
             record(search.probe(nodes, mask & ~violated))
             mask = mask & ~violated
             if counterexample is None or not stop_on_violation:
-                margin, proved = search.group_margins(nodes, mask)  # (B, G)
+                try:
+                    margin, proved = search.group_margins(nodes, mask)  # (B, G)
+                except BoundsTimeout:  # the nodes stay open
+                    queue.insert(0, (nodes, mask, level))
+                    timed_out = True
+                    break
                 if root_margin is None:
                     root_margin = margin[0].clone()
                 nodes_done += len(nodes)
@@ -161,7 +180,7 @@ def verify(
 
 def _check(method, timeout, max_nodes, batch, tol) -> str:
     if method == "auto":
-        method = "forward"
+        method = "zonotope"
     if method not in METHODS:
         raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {method!r}")
     check_budget(timeout, max_nodes, batch)
@@ -199,9 +218,9 @@ def _take(queue: list, batch: int):
 class _Search:
     """Bounds and attacks for one instance."""
 
-    def __init__(self, model, graph, input_set, spec, method, tol, memory):
+    def __init__(self, model, graph, input_set, spec, method, tol, memory, deadline):
         self.model, self.graph, self.set, self.spec = model, graph, input_set, spec
-        self.method, self.tol, self.memory = method, tol, memory
+        self.method, self.tol, self.memory, self.deadline = method, tol, memory, deadline
         self.graph64 = None
         self.rechecks = 0
         with torch.no_grad():  # float32 rounding scales with the outputs' magnitude
@@ -222,6 +241,7 @@ class _Search:
             spec.row_neg[rows],
             self.method,
             memory=self.memory,
+            deadline=self.deadline,
         ).double()
         margin = torch.where(mask, spec.group_min(lower), torch.inf)
         if self.graph.dtype == torch.float64:
@@ -241,7 +261,14 @@ class _Search:
         self.rechecks += int(which.sum())
         region = node_region(self.set, nodes[which], torch.float64)
         spec = self.spec
-        lower = row_bounds(self.graph64, region, spec.row_pos, spec.row_neg, self.method)
+        lower = row_bounds(
+            self.graph64,
+            region,
+            spec.row_pos,
+            spec.row_neg,
+            self.method,
+            deadline=self.deadline,
+        )
         out = torch.zeros(close.shape, dtype=torch.bool)
         out[which] = spec.group_min(lower) > 0
         return out

@@ -22,6 +22,15 @@ Methods
     with pre-activation bounds from ``'forward'``, concretised exactly over the domain;
     the result is the element-wise maximum with ``'forward'``. Rows go in chunks, so no
     ``(rows × activation size)`` tensor larger than ``memory`` elements is formed.
+``'zonotope'``
+    ``'forward'`` plus one error symbol ``ε ∈ [−1, 1]`` per unstable ReLU (DeepZ): the
+    ReLU becomes ``s·x + μ + μ·ε`` with ``s = u/(u − l)``, ``μ = −s·l/2``, and the symbols
+    are shared by every later value, so the relaxation errors keep their signs through
+    the following layers instead of growing as ``|W|·radius``. On the trained CNN this
+    is what keeps bounds near the sampled range (``'forward'`` grows ~10× per layer); its
+    cost is one pass of every layer per symbol (thousands of symbols on the CNN). Past
+    :func:`symbol_budget` symbols the smallest further errors go into the radius
+    instead (sound, looser).
 
 Floating point: bounds are computed in the graph's dtype; the verifier asks for a
 margin above a tolerance or recomputes a node in float64 before it says ``holds``.
@@ -30,13 +39,18 @@ margin above a tolerance or recomputes a node in float64 before it says ``holds`
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 
 from kpstudy.verify import ops
 from kpstudy.verify.graph import Graph, trace
 
-METHODS = ("ibp", "forward", "crown")
+METHODS = ("ibp", "forward", "crown", "zonotope")
+#: Elements a zonotope's centre stack may hold per region (symbols × the largest
+#: activation; 2 GiB in float32): on the paper-sized CNN (131 072 activations in its
+#: largest layer) that is 4096 error symbols.
+ZONOTOPE_ELEMENTS = 2**29
 
 
 def domain_min(a: torch.Tensor, domain: str) -> torch.Tensor:
@@ -49,6 +63,17 @@ def domain_min(a: torch.Tensor, domain: str) -> torch.Tensor:
     if domain == "cube":
         return a[:, 0] + rest.clamp_max(0.0).sum(1)
     raise ValueError(f"domain: expected 'simplex', 'cube' or 'point', got {domain!r}")
+
+
+def zonotope_min(a: torch.Tensor, q: int, domain: str) -> torch.Tensor:
+    """Exact minimum of ``a[:, :q]`` over ``θ`` (:func:`domain_min`) plus rows ``a[:, q:]``
+    over error symbols in ``[−1, 1]``, for ``a (B, q + E, …)``."""
+    low = domain_min(a[:, :q], domain)
+    return low - a[:, q:].abs().sum(1) if a.shape[1] > q else low
+
+
+class BoundsTimeout(Exception):
+    """A bound computation passed its ``deadline`` (between two layers)."""
 
 
 class Region:
@@ -85,24 +110,51 @@ class _State:
         self.maxpool: dict[int, tuple] = {}  # node → (argmax index, decided, upper const)
 
 
-def propagate(graph: Graph, region: Region) -> tuple[Region, _State]:
-    """Forward coefficient bounds of the output for ``B`` regions, and what CROWN needs."""
+def propagate(
+    graph: Graph,
+    region: Region,
+    visit=None,
+    *,
+    zonotope: bool = False,
+    max_generators: int | None = None,
+    deadline: float | None = None,
+) -> tuple[Region, _State]:
+    """Forward coefficient bounds of the output for ``B`` regions, and what CROWN needs.
+
+    With ``zonotope``, unstable ReLUs add error-symbol rows to the centre stacks (method
+    ``'zonotope'``): a value's ``mid`` is ``(B, q + E, *S)``, its first ``q`` rows the
+    affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
+    most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
+    ``(B, q, *S)``. ``visit(i, mid, rad)``, if given, sees every node's stacks as they
+    are made. Past ``deadline`` (``time.perf_counter()`` seconds) it raises
+    :class:`BoundsTimeout` between two layers: one node of a large zonotope can take
+    minutes.
+    """
     values: list[tuple | None] = [(region.mid, region.rad)] + [None] * (len(graph.nodes) - 1)
     remaining = [len(c) for c in graph.consumers]
     state = _State()
     B, q = region.mid.shape[:2]
+    if max_generators is None:
+        max_generators = symbol_budget(graph, q)
     for i, node in enumerate(graph.nodes[1:], start=1):
         ins = [values[j] for j in node.inputs]
         op = node.op
         if op.kind == "affine":
-            mid = _apply(op.linear, [m for m, _ in ins], B, q)
+            rows = max(m.shape[1] for m, _ in ins)  # symbols made after an input are 0 in it
+            mid = _apply(op.linear, [_pad_rows(m, rows) for m, _ in ins], B, rows)
             rad = _apply(op.abs_linear, [r for _, r in ins], B, q)
             mid[:, 0] += node.offset[0]
             values[i] = (mid, rad)
+        elif op.kind == "relu" and zonotope:
+            values[i] = _relu_zonotope(i, *ins[0], q, region.domain, state, max_generators)
         elif op.kind == "relu":
             values[i] = _relu(i, *ins[0], region.domain, state)
         else:
-            values[i] = _maxpool(i, op, *ins[0], region.domain, state)
+            values[i] = _maxpool(i, op, *ins[0], q, region.domain, state)
+        if visit is not None:
+            visit(i, *values[i])
+        if deadline is not None and time.perf_counter() > deadline:
+            raise BoundsTimeout
         for j in node.inputs:
             remaining[j] -= 1
             if remaining[j] == 0 and j > 0:
@@ -111,9 +163,33 @@ def propagate(graph: Graph, region: Region) -> tuple[Region, _State]:
     return Region(mid, rad, region.domain), state
 
 
+def symbol_budget(graph: Graph, q: int) -> int:
+    """Error symbols a zonotope carries on ``graph`` (:data:`ZONOTOPE_ELEMENTS` over its
+    largest activation, less the ``q`` affine rows), capped at one per ReLU neuron."""
+    biggest = max(math.prod(n.shape) for n in graph.nodes)
+    relus = sum(math.prod(n.shape) for n in graph.nodes if n.op and n.op.kind == "relu")
+    return max(0, min(relus, ZONOTOPE_ELEMENTS // biggest - q))
+
+
+def _pad_rows(x: torch.Tensor, rows: int) -> torch.Tensor:
+    if x.shape[1] == rows:
+        return x
+    return torch.cat([x, x.new_zeros(x.shape[0], rows - x.shape[1], *x.shape[2:])], 1)
+
+
 def _apply(f, xs: list[torch.Tensor], B: int, q: int) -> torch.Tensor:
     y = f(*(x.reshape(B * q, *x.shape[2:]) for x in xs))
     return y.reshape(B, q, *y.shape[1:])
+
+
+def _interval(mid, rad, q, domain):
+    """Concrete lower and upper bounds ``(B, *S)`` of a (zonotope) value."""
+    low = domain_min(mid[:, :q] - rad, domain)
+    high = -domain_min(-mid[:, :q] - rad, domain)
+    if mid.shape[1] > q:  # the symbols' reach, the same either way
+        spread = torch.linalg.vector_norm(mid[:, q:], ord=1, dim=1)
+        low, high = low - spread, high + spread
+    return low, high
 
 
 def _relu(i, mid, rad, domain, state):
@@ -131,29 +207,64 @@ def _relu(i, mid, rad, domain, state):
     return (new_up + new_low) / 2, (new_up - new_low) / 2
 
 
-def _maxpool(i, op: ops.MaxPool, mid, rad, domain, state):
-    B, q, C, H, W = mid.shape
-    low, up = mid - rad, mid + rad
-    l = domain_min(low, domain)
-    u = -domain_min(-up, domain)
+def _relu_zonotope(i, mid, rad, q, domain, state, max_generators):
+    """DeepZ: ``s·x + μ + μ·ε_new`` for each unstable ReLU (a new symbol), ``x`` if active,
+    0 if dead; past ``max_generators`` symbols the smallest new ``μ`` go to the radius."""
+    l, u = _interval(mid, rad, q, domain)
+    active, dead = l >= 0, u <= 0
+    unstable = ~(active | dead)
+    s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
+    mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
+    alpha = torch.where(unstable, (u > -l).to(mid.dtype), active.to(mid.dtype))
+    state.relu[i] = (alpha, s, 2 * mu)  # the triangle relaxation, for a backward pass
+    B, rows = mid.shape[:2]
+    flat_mu = mu.reshape(B, -1)
+    k = min(int((flat_mu > 0).sum(1).max()), max(0, max_generators - (rows - q)))
+    order = flat_mu.argsort(1, descending=True)[:, :k]  # the k largest μ of each region
+    out = mid.new_empty(B, rows + k, *mu.shape[1:])  # written once: the stacks are large
+    torch.mul(mid, s[:, None], out=out[:, :rows])
+    out[:, 0] += mu
+    symbols = out[:, rows:].view(B, k, flat_mu.shape[1])
+    symbols.zero_()
+    symbols.scatter_(2, order[:, :, None], flat_mu.gather(1, order)[:, :, None])
+    new_rad = s[:, None] * rad
+    new_rad[:, 0] += flat_mu.scatter(1, order, 0.0).reshape(mu.shape)  # the rest: radius
+    return out, new_rad
+
+
+def _maxpool(i, op: ops.MaxPool, mid, rad, q, domain, state):
+    """Decided windows pass their largest-lower-bound input; undecided ones are bounded
+    below by it and above by the window's largest upper bound (with error symbols, the
+    interval between its concrete lower bound and that)."""
+    B, rows, C, H, W = mid.shape
+    l, u = _interval(mid, rad, q, domain)
     lw, uw = op.windows(l, float("-inf")), op.windows(u, float("-inf"))  # (B, C, k, L)
     best = lw.argmax(2, keepdim=True)
     l_best = lw.gather(2, best)
     others = uw.scatter(2, best, float("-inf")).amax(2, keepdim=True)
     decided = (l_best >= others)[:, :, 0]  # (B, C, L)
+    l_best = l_best[:, :, 0]
     u_max = uw.amax(2)
     Ho, Wo = op.out_size(H, W)
-    pick = lambda x: (  # noqa: E731
-        op.windows(x.reshape(B * q, C, H, W), 0.0)
-        .reshape(B, q, C, -1, Ho * Wo)
-        .gather(3, best[:, None].expand(B, q, C, 1, Ho * Wo))[:, :, :, 0]
-    )
-    new_low = pick(low)
-    new_up = torch.where(decided[:, None], pick(up), torch.zeros_like(new_low))
-    new_up[:, 0] += torch.where(decided, torch.zeros_like(u_max), u_max)
-    state.maxpool[i] = (best[:, :, 0], decided, torch.where(decided, 0.0, u_max), (H, W))
-    shape = (B, q, C, Ho, Wo)
-    return ((new_up + new_low) / 2).reshape(shape), ((new_up - new_low) / 2).reshape(shape)
+
+    def pick(x):
+        r = x.shape[1]
+        win = op.windows(x.reshape(B * r, C, H, W), 0.0).reshape(B, r, C, -1, Ho * Wo)
+        return win.gather(3, best[:, None].expand(B, r, C, 1, Ho * Wo))[:, :, :, 0]
+
+    keep = decided[:, None]
+    zero = torch.zeros((), dtype=mid.dtype)
+    if rows == q:  # no symbols: keep the chosen input's lower bound linear in θ
+        low, up = pick(mid - rad), torch.where(keep, pick(mid + rad), zero)
+        up[:, 0] += torch.where(decided, zero, u_max)
+        new_mid, new_rad = (up + low) / 2, (up - low) / 2
+    else:
+        new_mid = torch.where(keep, pick(mid), zero)
+        new_rad = torch.where(keep, pick(rad), zero)
+        new_mid[:, 0] += torch.where(decided, zero, (l_best + u_max) / 2)
+        new_rad[:, 0] += torch.where(decided, zero, (u_max - l_best) / 2)
+    state.maxpool[i] = (best[:, :, 0], decided, torch.where(decided, zero, u_max), (H, W))
+    return new_mid.reshape(B, rows, C, Ho, Wo), new_rad.reshape(B, q, C, Ho, Wo)
 
 
 # -- margins -------------------------------------------------------------------------------
@@ -167,6 +278,7 @@ def row_bounds(
     method: str = "forward",
     *,
     memory: int = 2**25,
+    deadline: float | None = None,
 ) -> torch.Tensor:
     """Lower bounds ``(B, R)`` of ``y[pos] − y[neg]`` over each region.
 
@@ -178,21 +290,27 @@ def row_bounds(
     pos, neg : LongTensor, shape (R,)
         Flat output indices; ``-1`` drops a term (``neg = -1``: lower bounds of ``y[pos]``;
         ``pos = -1``: lower bounds of ``−y[neg]``).
-    method : {'ibp', 'forward', 'crown'}
+    method : {'ibp', 'forward', 'crown', 'zonotope'}
     memory : int
         Largest backward coefficient tensor, in elements (``'crown'`` chunks rows by it).
+    deadline : float, optional
+        ``time.perf_counter()`` past which :class:`BoundsTimeout` is raised.
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     if method == "ibp":
         region = region.to_interval()
-    out, state = propagate(graph, region)
+    q = region.mid.shape[1]
+    out, state = propagate(graph, region, zonotope=method == "zonotope", deadline=deadline)
     mid, rad = out.mid.flatten(2), out.rad.flatten(2)
     zero = torch.zeros((), dtype=mid.dtype)
-    first = torch.where((pos >= 0)[None, None], (mid - rad)[..., pos.clamp_min(0)], zero)
-    second = torch.where((neg >= 0)[None, None], (mid + rad)[..., neg.clamp_min(0)], zero)
-    coeff = first - second
-    lower = domain_min(coeff, out.domain)
+
+    def take(x, index):  # x[..., index], 0 where index is −1
+        return torch.where((index >= 0)[None, None], x[..., index.clamp_min(0)], zero)
+
+    coeff = take(mid, pos) - take(mid, neg)  # (B, q + E, R): the margin's symbols cancel
+    coeff[:, :q] -= take(rad, pos) + take(rad, neg)
+    lower = zonotope_min(coeff, q, out.domain)
     if method != "crown":
         return lower
     crown = torch.cat(
@@ -211,19 +329,25 @@ def _chunks(R: int, region: Region, graph: Graph, memory: int):
     return [slice(a, min(a + step, R)) for a in range(0, R, step)]
 
 
-def _backward(graph: Graph, region: Region, state: _State, pos, neg) -> torch.Tensor:
+def _backward(
+    graph: Graph, region: Region, state: _State, pos, neg, start: int = -1
+) -> torch.Tensor:
     """CROWN lower bounds ``(B, r)`` of ``y[pos] − y[neg]``: a linear lower bound of each
-    row pulled back to the input, then minimised exactly over the region."""
+    row pulled back to the input, then minimised exactly over the region.
+
+    ``y`` is node ``start`` (default: the output), flat; ``state`` holds the relaxations of
+    the nodes before it."""
     B, r = region.batch, len(pos)
     dtype = region.mid.dtype
-    out = graph.nodes[-1]
+    start = start % len(graph.nodes)
+    out = graph.nodes[start]
     seed = torch.zeros(B, r, math.prod(out.shape), dtype=dtype)
     rows = torch.arange(r)
     seed[:, rows[pos >= 0], pos[pos >= 0]] = 1.0
     seed[:, rows[neg >= 0], neg[neg >= 0]] -= 1.0
-    A: dict[int, torch.Tensor] = {len(graph.nodes) - 1: seed.reshape(B, r, *out.shape)}
+    A: dict[int, torch.Tensor] = {start: seed.reshape(B, r, *out.shape)}
     const = torch.zeros(B, r, dtype=dtype)
-    for i in range(len(graph.nodes) - 1, 0, -1):
+    for i in range(start, 0, -1):
         a = A.pop(i, None)
         if a is None:
             continue
@@ -291,7 +415,7 @@ def output_bounds(model, input_set, method: str = "forward") -> tuple[torch.Tens
     model : nn.Module
         Built from the operators of :mod:`kpstudy.verify.graph`.
     input_set : ConvexHull, Parallelotope or Box
-    method : {'ibp', 'forward', 'crown'}
+    method : {'ibp', 'forward', 'crown', 'zonotope'}
 
     Returns
     -------

@@ -27,10 +27,17 @@ import numpy as np
 import torch
 
 from kpstudy.verify.bab import _take, check_budget
-from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
+from kpstudy.verify.bounds import (
+    BoundsTimeout,
+    domain_min,
+    example_input,
+    node_region,
+    propagate,
+    symbol_budget,
+)
 from kpstudy.verify.graph import trace
 
-METHODS = ("ibp", "forward")
+METHODS = ("ibp", "forward", "zonotope")
 
 
 @dataclass
@@ -101,10 +108,12 @@ def reachable_argmax(
     input_set : ConvexHull or Parallelotope
     group_sizes : sequence of int
         Entries per group, summing to the model's output size.
-    method : {'forward', 'ibp'}
-        Bounds at each node.
+    method : {'forward', 'ibp', 'zonotope'}
+        Bounds at each node (:mod:`kpstudy.verify.bounds`); with ``'zonotope'`` the error
+        symbols shared by a candidate and an index cancel in their margin.
     timeout : float
-        Seconds before the search stops; the possible sets are sound at any time.
+        Seconds before the search stops (checked between nodes and, inside a node's
+        bounds, between layers); the possible sets are sound at any time.
     max_nodes, batch : int, optional
         Most nodes to bound; nodes bounded together (default: what fits in ``memory``).
     candidates : int
@@ -151,9 +160,13 @@ def reachable_argmax(
             f"got {sum(sizes)}"
         )
     G, S = len(sizes), max(sizes)
-    search = _Reach(model, graph, input_set, sizes, method, min(candidates, S), tol)
+    search = _Reach(
+        model, graph, input_set, sizes, method, min(candidates, S), tol, start + timeout
+    )
     if batch is None:
         q = input_set.n + 1
+        if method == "zonotope":  # plus its error symbols
+            q += symbol_budget(graph, q)
         biggest = max(max(math.prod(n.shape) for n in graph.nodes), G * S * (candidates + 2))
         batch = max(1, min(64, memory // (2 * q * biggest)))
 
@@ -172,7 +185,12 @@ def reachable_argmax(
             depth = max(depth, level)
             points = input_set.node_points(nodes)  # corners (the root's), then the centre
             search.witness((points if level == 0 else points[:, -1:]).reshape(-1, input_set.n))
-            kept = search.undominated(nodes) & parent  # (B, G, S)
+            try:
+                kept = search.undominated(nodes) & parent  # (B, G, S)
+            except BoundsTimeout:  # the nodes stay open, with their parents' sets
+                queue.insert(0, (nodes, parent, level))
+                timed_out = True
+                break
             nodes_done += len(nodes)
             open_ = (kept & ~search.reached).flatten(1).any(1)
             possible |= kept[~open_].any(0)
@@ -196,8 +214,8 @@ def reachable_argmax(
 class _Reach:
     """Bounds and witnesses for one reachability search."""
 
-    def __init__(self, model, graph, input_set, sizes, method, candidates, tol):
-        self.model, self.graph, self.set = model, graph, input_set
+    def __init__(self, model, graph, input_set, sizes, method, candidates, tol, deadline):
+        self.model, self.graph, self.set, self.deadline = model, graph, input_set, deadline
         self.G, self.S, self.method, self.k = len(sizes), max(sizes), method, candidates
         # Groups padded to a (G, S) layout: flat output index and whether it exists.
         offsets = np.cumsum([0, *sizes[:-1]])
@@ -226,18 +244,28 @@ class _Reach:
         region = node_region(self.set, nodes, self.graph.dtype)
         if self.method == "ibp":
             region = region.to_interval()
-        out, _ = propagate(self.graph, region)
-        B, q = out.mid.shape[:2]
+        zonotope = self.method == "zonotope"
+        out, _ = propagate(self.graph, region, zonotope=zonotope, deadline=self.deadline)
+        q = out.rad.shape[1]  # rows of the affine part in θ; the rest are error symbols
         mid, rad = out.mid.flatten(2), out.rad.flatten(2)
-        low = self._padded(mid - rad, float("-inf"))  # a missing entry never beats another
-        up = self._padded(mid + rad, 0.0)
-        lower = domain_min(low, out.domain)  # (B, G, S)
+        low = self._padded(mid[:, :q] - rad, float("-inf"))  # a missing entry never beats
+        up = self._padded(mid[:, :q] + rad, 0.0)
+        symbols = self._padded(mid[:, q:], 0.0)  # (B, E, G, S)
+        spread = torch.linalg.vector_norm(symbols, ord=1, dim=1)  # (B, G, S)
+        lower = domain_min(low, out.domain) - spread
+        upper = -domain_min(-up, out.domain) + spread
         top = lower.topk(self.k, dim=-1).indices  # (B, G, k)
-        beaten = torch.zeros(B, self.G, self.S, dtype=torch.bool)
-        for c in range(self.k):
-            index = top[:, None, :, c, None].expand(B, q, self.G, 1)
-            margin = low.gather(3, index) - up  # ℓ_c(θ) − u_i(θ), (B, q, G, S)
-            beaten |= domain_min(margin, out.domain) > self.tol_abs
+        # Intervals first (ℓ_c ≥ lower_c > upper_i), then, for what they leave, the
+        # linear bounds: min over θ of ℓ_c(θ) − u_i(θ), less the symbols' share.
+        beaten = (lower.gather(2, top).amax(-1, keepdim=True) > upper + self.tol_abs) & self.valid
+        b, g, i = (~beaten & self.valid).nonzero(as_tuple=True)
+        for part in torch.arange(len(b)).split(4096):
+            bp, gp, ip = b[part], g[part], i[part]
+            for c in range(self.k):
+                cp = top[bp, gp, c]
+                margin = domain_min(low[bp, :, gp, cp] - up[bp, :, gp, ip], out.domain)
+                share = (symbols[bp, :, gp, cp] - symbols[bp, :, gp, ip]).abs().sum(1)
+                beaten[bp, gp, ip] |= margin - share > self.tol_abs
         return ~beaten & self.valid
 
     def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
