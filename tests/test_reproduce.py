@@ -28,6 +28,7 @@ TINY = replace(
     timeout=5.0,
     resnet_timeout=5.0,
     pose_bound_timeout=1.0,
+    global_pose_bound_timeout=1.0,
     figure_images=2,
 )
 
@@ -104,6 +105,10 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         (dict(seeds=9), "seeds: expected at most perturbed_seeds=8"),
         (dict(timeout=0), "timeout: expected a positive number"),
         (dict(speed=2), "overrides: unknown profile fields ['speed']"),
+        (
+            dict(global_pose_bound_method="crown"),
+            "global_pose_bound_method: expected 'forward', 'zonotope' or 'ibp', got 'crown'",
+        ),
     ],
 )
 def test_bad_profiles_are_refused_before_any_work(overrides, message):
