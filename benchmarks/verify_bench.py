@@ -15,9 +15,10 @@ place) or, with ``--perturbation brightness``, the paper's brightness hulls
 ``--perturbation objects|blocks|contrast`` the study's own perturbation sets of ``--data``
 (``python -m data_gen perturb``: pasted apron occluders, pixel blocks, contrast levels; keys
 ``…/2/non-overlapping``, ``…/0.0005``; seeds are the sets' seed images). Every instance
-is run for each bound method, on the exact :class:`ConvexHull` and on the
-:class:`Parallelotope` baseline (ModelVerification.jl's treatment of a hull), with one
-timeout. Peak memory is the process's peak resident set during the instance.
+is run for each bound method (default: ``zonotope``, ours, and ``forward``, linear bounds
+without error symbols), on the exact :class:`ConvexHull` and on the :class:`Parallelotope`
+baseline (ModelVerification.jl's treatment of a hull), with one timeout (checked between
+layers too). Peak memory is the process's peak resident set during the instance.
 """
 
 from __future__ import annotations

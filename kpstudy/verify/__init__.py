@@ -3,9 +3,11 @@
 An instance is a problem (model, input set, output spec) × a bound method × a search
 (DESIGN.md §4.6–4.8): :class:`ConvexHull` (exact), :class:`Parallelotope` (the
 ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
-:func:`output_bounds` with ``'ibp'``, ``'forward'`` or ``'crown'``; :func:`verify` returns
-a :class:`Result` — ``holds``, ``violated`` with a re-checked counterexample, or
-``unknown``; :func:`reachable_argmax` returns sound sets of the indices each keypoint's
+:func:`output_bounds` with ``'ibp'``, ``'forward'``, ``'crown'`` or ``'zonotope'`` (the
+default of :func:`verify`: one shared error symbol per unstable ReLU keeps the bounds of a
+trained CNN near the sampled range, where forward bounds grow ~10× per layer);
+:func:`verify` returns a :class:`Result` — ``holds``, ``violated`` with a re-checked
+counterexample, or ``unknown``; :func:`reachable_argmax` returns sound sets of the indices each keypoint's
 argmax can take (:class:`Regions`), with witnesses; :func:`bound_profile` shows, node by
 node, how far a method's bounds are from the sampled range; :func:`export_instance` writes
 ONNX + VNN-LIB for other verifiers and :func:`export_onnx` a plain network (a backbone,
