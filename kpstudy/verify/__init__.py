@@ -7,11 +7,11 @@ ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
 default of :func:`verify`: one shared error symbol per unstable ReLU keeps the bounds of a
 trained CNN near the sampled range, where forward bounds grow ~10× per layer);
 :func:`verify` returns a :class:`Result` — ``holds``, ``violated`` with a re-checked
-counterexample, or ``unknown``; :func:`reachable_argmax` returns sound sets of the indices each keypoint's
-argmax can take (:class:`Regions`), with witnesses; :func:`bound_profile` shows, node by
-node, how far a method's bounds are from the sampled range; :func:`export_instance` writes
-ONNX + VNN-LIB for other verifiers and :func:`export_onnx` a plain network (a backbone,
-a proxy).
+counterexample, or ``unknown``; :func:`reachable_argmax` returns sound sets of the indices
+each keypoint's argmax can take (:class:`Regions`), with witnesses; :func:`bound_profile`
+shows, node by node, how far a method's bounds are from the sampled range;
+:func:`export_instance` writes ONNX + VNN-LIB for other verifiers and :func:`export_onnx`
+a plain network (a backbone, a proxy).
 """
 
 from kpstudy.verify.bab import verify

@@ -234,6 +234,9 @@ class _Search:
         rows = mask[:, spec.row_group].any(0)  # rows needed by some node of the batch
         region = node_region(self.set, nodes, self.graph.dtype)
         lower = torch.full((len(nodes), spec.n_rows), float("inf"), dtype=torch.float64)
+        if not rows.any():  # single-cell groups only: nothing to bound
+            margin = lower.new_full(mask.shape, torch.inf)
+            return margin, margin > 0
         lower[:, rows] = row_bounds(
             self.graph,
             region,
