@@ -68,8 +68,12 @@ def domain_min(a: torch.Tensor, domain: str) -> torch.Tensor:
 def zonotope_min(a: torch.Tensor, q: int, domain: str) -> torch.Tensor:
     """Exact minimum of ``a[:, :q]`` over ``θ`` (:func:`domain_min`) plus rows ``a[:, q:]``
     over error symbols in ``[−1, 1]``, for ``a (B, q + E, …)``."""
-    low = domain_min(a[:, :q], domain)
-    return low - a[:, q:].abs().sum(1) if a.shape[1] > q else low
+    return domain_min(a[:, :q], domain) - _symbol_reach(a, q)
+
+
+def _symbol_reach(a: torch.Tensor, q: int):
+    """``Σ_e |a[:, q + e]|``: how far the error symbols move each entry (0 without any)."""
+    return torch.linalg.vector_norm(a[:, q:], ord=1, dim=1) if a.shape[1] > q else 0.0
 
 
 class BoundsTimeout(Exception):
@@ -184,11 +188,9 @@ def _apply(f, xs: list[torch.Tensor], B: int, q: int) -> torch.Tensor:
 
 def _interval(mid, rad, q, domain):
     """Concrete lower and upper bounds ``(B, *S)`` of a (zonotope) value."""
-    low = domain_min(mid[:, :q] - rad, domain)
-    high = -domain_min(-mid[:, :q] - rad, domain)
-    if mid.shape[1] > q:  # the symbols' reach, the same either way
-        spread = torch.linalg.vector_norm(mid[:, q:], ord=1, dim=1)
-        low, high = low - spread, high + spread
+    reach = _symbol_reach(mid, q)  # the same either way
+    low = domain_min(mid[:, :q] - rad, domain) - reach
+    high = -domain_min(-mid[:, :q] - rad, domain) + reach
     return low, high
 
 
