@@ -220,6 +220,49 @@ def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
     assert none >= few >= full and none > 1.5 * full
 
 
+class _TwoReluBranches(nn.Module):
+    """``y0 = relu(x) − relu(0.5 − x)`` (two parallel ReLU branches) and ``y1`` the affine
+    part of y0's zonotope: if both branches numbered their new symbol alike, the margin
+    ``y1 − y0`` would look like ``±0.0625·ε`` where it reaches −0.4375 (at x = 0.5)."""
+
+    def __init__(self):
+        super().__init__()
+        self.a, self.b, self.c, self.d = (
+            nn.Linear(1, 2),
+            nn.Linear(1, 2),
+            nn.Linear(2, 2),
+            nn.Linear(1, 2),
+        )
+        with torch.no_grad():
+            for layer, w, b in (
+                (self.a, [[1.0], [0.0]], [0.0, 0.0]),
+                (self.b, [[0.0], [-1.0]], [0.0, 0.5]),
+                (self.c, [[1.0, -1.0], [0.0, 0.0]], [0.0, 0.0]),
+                (self.d, [[0.0], [1.25]], [0.0, -0.5625]),
+            ):
+                layer.weight.copy_(torch.tensor(w))
+                layer.bias.copy_(torch.tensor(b))
+
+    def forward(self, x):
+        return self.c(torch.relu(self.a(x)) + torch.relu(self.b(x))) + self.d(x)
+
+
+def test_symbols_of_parallel_branches_stay_distinct():
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+
+    net = _TwoReluBranches().eval()
+    hull = ConvexHull(torch.tensor([[-1.0], [1.0]]))
+    graph = trace(net, hull.vertices[:1])
+    region = B.root_region(hull, graph.dtype)
+    with torch.no_grad():
+        y = net(torch.linspace(-1, 1, 201)[:, None])
+        true_min = (y[:, 1] - y[:, 0]).min()
+        for method in ("forward", "zonotope"):
+            lower = B.row_bounds(graph, region, torch.tensor([1]), torch.tensor([0]), method)
+            assert lower.item() <= true_min + 1e-6, method
+
+
 def test_bounds_are_exact_on_a_linear_network():
     net = nn.Sequential(nn.Conv2d(2, 3, 3), nn.Flatten(), nn.Linear(3 * 6 * 6, 4)).double().eval()
     V = hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64)

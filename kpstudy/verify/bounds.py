@@ -140,6 +140,7 @@ def propagate(
     B, q = region.mid.shape[:2]
     if max_generators is None:
         max_generators = symbol_budget(graph, q)
+    made = q  # rows in use: θ rows, then every error symbol made so far
     for i, node in enumerate(graph.nodes[1:], start=1):
         ins = [values[j] for j in node.inputs]
         op = node.op
@@ -150,7 +151,10 @@ def propagate(
             mid[:, 0] += node.offset[0]
             values[i] = (mid, rad)
         elif op.kind == "relu" and zonotope:
-            values[i] = _relu_zonotope(i, *ins[0], q, region.domain, state, max_generators)
+            mid, rad = ins[0]  # symbols are numbered across branches: pad to all made so far
+            mid = _pad_rows(mid, made)
+            values[i] = _relu_zonotope(i, mid, rad, q, region.domain, state, max_generators)
+            made = values[i][0].shape[1]
         elif op.kind == "relu":
             values[i] = _relu(i, *ins[0], region.domain, state)
         else:
