@@ -9,7 +9,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from torch import nn
 
 from kpstudy.verify import Box, ConvexHull, Parallelotope, output_bounds
-from tests.verify_nets import MixedNet, PoolProxy, hull_vertices, mlp
+from tests.verify_nets import LocalNet, MixedNet, PoolProxy, hull_vertices, mlp
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 
@@ -261,6 +261,42 @@ def test_symbols_of_parallel_branches_stay_distinct():
         for method in ("forward", "zonotope"):
             lower = B.row_bounds(graph, region, torch.tensor([1]), torch.tensor([0]), method)
             assert lower.item() <= true_min + 1e-6, method
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_zonotope_symbol_blocks_equal_dense_stacks(seed, monkeypatch):
+    """Error symbols kept in spatial blocks (kpstudy.verify.symbols) give the bounds of
+    the dense stacks, through every block operator in awkward geometry, for a batch of
+    regions; and they contain 2000 sampled images."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify import symbols
+    from kpstudy.verify.graph import trace
+
+    net = LocalNet(seed).double()
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 11, 9), spread=0.3, dtype=torch.float64))
+    graph = trace(net, hull.vertices[:1])
+    nodes = hull.split(hull.split(hull.root()))  # four regions in one batch
+    region = B.node_region(hull, nodes, graph.dtype)
+    with torch.no_grad():
+        y = net(_sample_images(hull, seed))
+        blocks, _ = B.propagate(graph, region, zonotope=True)
+        monkeypatch.setattr(symbols, "is_local", lambda *args: False)
+        dense, _ = B.propagate(graph, region, zonotope=True)
+    # The same symbols (blocks number them by tile, padded to the batch): every linear
+    # function of the output has the same bounds, margins included.
+    q = region.mid.shape[1]
+    g = torch.Generator().manual_seed(seed)
+    eye = torch.eye(5, dtype=torch.float64)
+    A = torch.cat([torch.randn(8, 5, dtype=torch.float64, generator=g), eye, -eye])
+    lows = []
+    for out in (blocks, dense):
+        coeff = out.mid @ A.T
+        coeff[:, :q] -= out.rad @ A.abs().T
+        lows.append(B.zonotope_min(coeff, q, "simplex"))
+    torch.testing.assert_close(lows[0], lows[1])
+    torch.testing.assert_close(blocks.rad, dense.rad)
+    lo, hi = B._interval(blocks.mid, blocks.rad, q, "simplex")
+    assert (y >= lo.min(0).values - 1e-9).all() and (y <= hi.max(0).values + 1e-9).all()
 
 
 def test_bounds_are_exact_on_a_linear_network():

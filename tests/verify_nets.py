@@ -39,6 +39,37 @@ class MixedNet(nn.Module):
         return self.fc(z.flatten(1))
 
 
+class LocalNet(nn.Module):
+    """The operators whose error symbols stay in spatial blocks, in awkward geometry:
+    strided, padded, dilated and grouped convolutions, transposed convolutions with
+    output padding, a batch norm on a sum, ReLUs in two parallel branches, channel
+    slices and concatenation, on a non-square input ``(B, 2, 11, 9)`` → ``(B, 5)``."""
+
+    def __init__(self, seed: int):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.c1 = nn.Conv2d(2, 6, 3, stride=2, padding=2)
+        self.c2 = nn.Conv2d(6, 6, 3, padding=2, dilation=2, groups=2)
+        self.c3 = nn.Conv2d(6, 4, (1, 3), padding=(0, 1))
+        self.bn = nn.BatchNorm2d(4)
+        self.up = nn.ConvTranspose2d(6, 3, 3, stride=2, padding=1, output_padding=1)
+        self.up2 = nn.ConvTranspose2d(3, 3, (2, 4), stride=(1, 2), padding=(0, 2))
+        self.fc = nn.Linear(3 * 15 * 22, 5)
+        with torch.no_grad():
+            self.bn.running_mean.uniform_(-0.5, 0.5)
+            self.bn.running_var.uniform_(0.5, 2.0)
+        self.eval()
+
+    def forward(self, x):
+        h = torch.relu(self.c1(x))
+        a = torch.relu(self.c2(h))
+        b = torch.relu(self.c3(h))
+        s = torch.relu(self.bn(a[:, 1:5] + b))
+        z = torch.cat([s[:, :2], a[:, 4:], h[:, :2]], 1)
+        z = torch.relu(self.up2(torch.relu(self.up(z))))
+        return self.fc(z.flatten(1))
+
+
 class PoolProxy(nn.Module):
     """A tiny keypoint proxy: conv backbone → two heatmap channels → per-channel cell
     pooling → flatten → concatenation. Input ``(B, 1, 10, 10)``."""

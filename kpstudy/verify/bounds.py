@@ -28,9 +28,12 @@ Methods
     are shared by every later value, so the relaxation errors keep their signs through
     the following layers instead of growing as ``|W|·radius``. On the trained CNN this
     is what keeps bounds near the sampled range (``'forward'`` grows ~10× per layer); its
-    cost is one pass of every layer per symbol (thousands of symbols on the CNN). Past
-    :func:`symbol_budget` symbols the smallest further errors go into the radius
-    instead (sound, looser).
+    cost is one pass of every layer per symbol (thousands of symbols on the CNN), on the
+    window the symbol reaches: symbols made in one tile of a ReLU share a spatial block
+    (:mod:`kpstudy.verify.symbols`) until an operator that mixes space (a pool, a flatten,
+    a linear layer) needs the dense stack. Symbols are numbered across branches, so two
+    ReLU branches never share one. Past :func:`symbol_budget` symbols the smallest
+    further errors go into the radius instead (sound, looser).
 
 Floating point: bounds are computed in the graph's dtype; the verifier asks for a
 margin above a tolerance or recomputes a node in float64 before it says ``holds``.
@@ -43,7 +46,7 @@ import time
 
 import torch
 
-from kpstudy.verify import ops
+from kpstudy.verify import ops, symbols
 from kpstudy.verify.graph import Graph, trace
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
@@ -129,46 +132,69 @@ def propagate(
     ``'zonotope'``): a value's ``mid`` is ``(B, q + E, *S)``, its first ``q`` rows the
     affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
     most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
-    ``(B, q, *S)``. ``visit(i, mid, rad)``, if given, sees every node's stacks as they
-    are made. Past ``deadline`` (``time.perf_counter()`` seconds) it raises
-    :class:`BoundsTimeout` between two layers: one node of a large zonotope can take
-    minutes.
+    ``(B, q, *S)``. Inside, the symbols travel in spatial blocks where they can
+    (:mod:`kpstudy.verify.symbols`); the output and what ``visit(i, mid, rad)`` (if
+    given) sees of every node are dense stacks. Past ``deadline``
+    (``time.perf_counter()`` seconds) it raises :class:`BoundsTimeout` between two layers:
+    one node of a large zonotope can take minutes.
     """
-    values: list[tuple | None] = [(region.mid, region.rad)] + [None] * (len(graph.nodes) - 1)
+    B, q = region.mid.shape[:2]
+    # A value is (mid, rad, blocks): with ``blocks`` (a list of symbols.Block) ``mid``
+    # holds the θ rows only and the symbols live in blocks; with None, ``mid`` is dense.
+    values: list[tuple | None] = [None] * len(graph.nodes)
+    values[0] = (region.mid, region.rad, [] if zonotope else None)
     remaining = [len(c) for c in graph.consumers]
     state = _State()
-    B, q = region.mid.shape[:2]
     if max_generators is None:
         max_generators = symbol_budget(graph, q)
-    made = q  # rows in use: θ rows, then every error symbol made so far
+    made = q  # rows in use: θ rows, then every error symbol made so far (in any branch)
+
+    def dense(value):
+        mid, _, blocks = value
+        return mid if blocks is None else symbols.dense(mid, blocks, made)
+
     for i, node in enumerate(graph.nodes[1:], start=1):
         ins = [values[j] for j in node.inputs]
         op = node.op
+        in_shapes = [graph.nodes[j].shape for j in node.inputs]
         if op.kind == "affine":
-            rows = max(m.shape[1] for m, _ in ins)  # symbols made after an input are 0 in it
-            mid = _apply(op.linear, [_pad_rows(m, rows) for m, _ in ins], B, rows)
-            rad = _apply(op.abs_linear, [r for _, r in ins], B, q)
+            local = all(v[2] is not None for v in ins) and symbols.is_local(
+                op, in_shapes, node.shape
+            )
+            mids = [v[0] for v in ins] if local else [dense(v) for v in ins]
+            rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0 in it
+            mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
+            rad = _apply(op.abs_linear, [v[1] for v in ins], B, q)
             mid[:, 0] += node.offset[0]
-            values[i] = (mid, rad)
+            blocks = None
+            if local and len(ins) == 1:
+                blocks = symbols.apply(op, ins[0][2], in_shapes[0], node.shape)
+            elif local:
+                blocks = symbols.combine(op, [v[2] for v in ins], in_shapes)
+            values[i] = (mid, rad, blocks)
+        elif op.kind == "relu" and zonotope and ins[0][2] is not None:
+            values[i] = _relu_blocks(i, *ins[0], q, made, region.domain, state, max_generators)
+            made += sum(b.rows for b in values[i][2] if b.start >= made)
         elif op.kind == "relu" and zonotope:
-            mid, rad = ins[0]  # symbols are numbered across branches: pad to all made so far
-            mid = _pad_rows(mid, made)
-            values[i] = _relu_zonotope(i, mid, rad, q, region.domain, state, max_generators)
+            mid = _pad_rows(ins[0][0], made)  # new symbols are numbered after all others
+            values[i] = (
+                *_relu_zonotope(i, mid, ins[0][1], q, region.domain, state, max_generators),
+                None,
+            )
             made = values[i][0].shape[1]
         elif op.kind == "relu":
-            values[i] = _relu(i, *ins[0], region.domain, state)
+            values[i] = (*_relu(i, *ins[0][:2], region.domain, state), None)
         else:
-            values[i] = _maxpool(i, op, *ins[0], q, region.domain, state)
+            values[i] = (*_maxpool(i, op, dense(ins[0]), ins[0][1], q, region.domain, state), None)
         if visit is not None:
-            visit(i, *values[i])
+            visit(i, dense(values[i]), values[i][1])
         if deadline is not None and time.perf_counter() > deadline:
             raise BoundsTimeout
         for j in node.inputs:
             remaining[j] -= 1
             if remaining[j] == 0 and j > 0:
                 values[j] = None
-    mid, rad = values[-1]
-    return Region(mid, rad, region.domain), state
+    return Region(dense(values[-1]), values[-1][1], region.domain), state
 
 
 def symbol_budget(graph: Graph, q: int) -> int:
@@ -236,6 +262,39 @@ def _relu_zonotope(i, mid, rad, q, domain, state, max_generators):
     new_rad = s[:, None] * rad
     new_rad[:, 0] += flat_mu.scatter(1, order, 0.0).reshape(mu.shape)  # the rest: radius
     return out, new_rad
+
+
+def _relu_blocks(i, mid, rad, blocks, q, made, domain, state, max_generators):
+    """:func:`_relu_zonotope` on a value whose symbols are in blocks (:mod:`symbols`): the
+    old symbols are scaled by the slopes, the new ones grouped by tile."""
+    reach = symbols.reach(blocks, mid[:, 0])
+    l = domain_min(mid - rad, domain) - reach
+    u = -domain_min(-mid - rad, domain) + reach
+    active, dead = l >= 0, u <= 0
+    unstable = ~(active | dead)
+    s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
+    mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
+    alpha = torch.where(unstable, (u > -l).to(mid.dtype), active.to(mid.dtype))
+    state.relu[i] = (alpha, s, 2 * mu)  # the triangle relaxation, for a backward pass
+    B = mid.shape[0]
+    flat_mu = mu.reshape(B, -1)
+    left = max(0, max_generators - (made - q))
+    k = min(int((flat_mu > 0).sum(1).max()), left)
+    while True:  # the k largest μ of each region, fewer if the tiles' rows pass the budget
+        kept = torch.zeros_like(flat_mu)
+        if k > 0:
+            top = flat_mu.topk(k, 1)
+            kept.scatter_(1, top.indices, top.values)
+        new = symbols.make(kept.view_as(mu), made)
+        rows = sum(b.rows for b in new)
+        if rows <= left:
+            break
+        k = min(k - 1, k * left // rows)
+    new_mid = mid * s[:, None]
+    new_mid[:, 0] += mu
+    new_rad = s[:, None] * rad
+    new_rad[:, 0] += (flat_mu - kept).view_as(mu)  # the rest: radius
+    return new_mid, new_rad, symbols.scale(blocks, s) + new
 
 
 def _maxpool(i, op: ops.MaxPool, mid, rad, q, domain, state):
