@@ -76,7 +76,7 @@ def zonotope_min(a: torch.Tensor, q: int, domain: str) -> torch.Tensor:
 
 def _symbol_reach(a: torch.Tensor, q: int):
     """``Σ_e |a[:, q + e]|``: how far the error symbols move each entry (0 without any)."""
-    return torch.linalg.vector_norm(a[:, q:], ord=1, dim=1) if a.shape[1] > q else 0.0
+    return symbols.l1_rows(a[:, q:]) if a.shape[1] > q else 0.0
 
 
 class BoundsTimeout(Exception):

@@ -36,6 +36,7 @@ from kpstudy.verify.bounds import (
     symbol_budget,
 )
 from kpstudy.verify.graph import trace
+from kpstudy.verify.symbols import l1_rows
 
 METHODS = ("ibp", "forward", "zonotope")
 
@@ -251,7 +252,7 @@ class _Reach:
         low = self._padded(mid[:, :q] - rad, float("-inf"))  # a missing entry never beats
         up = self._padded(mid[:, :q] + rad, 0.0)
         symbols = self._padded(mid[:, q:], 0.0)  # (B, E, G, S)
-        spread = torch.linalg.vector_norm(symbols, ord=1, dim=1)  # (B, G, S)
+        spread = l1_rows(symbols)  # (B, G, S)
         lower = domain_min(low, out.domain) - spread
         upper = -domain_min(-up, out.domain) + spread
         top = lower.topk(self.k, dim=-1).indices  # (B, G, k)
@@ -264,7 +265,7 @@ class _Reach:
             for c in range(self.k):
                 cp = top[bp, gp, c]
                 margin = domain_min(low[bp, :, gp, cp] - up[bp, :, gp, ip], out.domain)
-                share = (symbols[bp, :, gp, cp] - symbols[bp, :, gp, ip]).abs().sum(1)
+                share = l1_rows(symbols[bp, :, gp, cp] - symbols[bp, :, gp, ip])
                 beaten[bp, gp, ip] |= margin - share > self.tol_abs
         return ~beaten & self.valid
 

@@ -62,13 +62,20 @@ def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
     return False
 
 
+def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
+    """``Σ_i |x[:, i]|`` for ``x (B, r, …)``, a few rows at a time (``vector_norm`` and
+    ``abs().sum(1)`` over a middle dimension are 4–14× slower on the CPU)."""
+    out = x[:, :chunk].abs().sum(1)
+    for i in range(chunk, x.shape[1], chunk):
+        out += x[:, i : i + chunk].abs().sum(1)
+    return out
+
+
 def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
     """``Σ_e |coefficient of symbol e|`` per entry, ``(B, C, H, W)`` like ``like``."""
     out = torch.zeros_like(like)
     for b in blocks:
-        out[(slice(None), slice(None), *b.window())] += torch.linalg.vector_norm(
-            b.coeff, ord=1, dim=1
-        )
+        out[(slice(None), slice(None), *b.window())] += l1_rows(b.coeff)
     return out
 
 
