@@ -239,16 +239,23 @@ def _relu(i, mid, rad, domain, state):
     return (new_up + new_low) / 2, (new_up - new_low) / 2
 
 
+def _deepz(i, l, u, state):
+    """DeepZ's slope ``s`` and offset ``μ`` (``0`` where stable) of ReLUs with
+    pre-activation bounds ``l, u``; keeps the triangle relaxation for a backward pass."""
+    active, dead = l >= 0, u <= 0
+    unstable = ~(active | dead)
+    s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(l.dtype))
+    mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
+    alpha = torch.where(unstable, (u > -l).to(l.dtype), active.to(l.dtype))
+    state.relu[i] = (alpha, s, 2 * mu)
+    return s, mu
+
+
 def _relu_zonotope(i, mid, rad, q, domain, state, max_generators):
     """DeepZ: ``s·x + μ + μ·ε_new`` for each unstable ReLU (a new symbol), ``x`` if active,
     0 if dead; past ``max_generators`` symbols the smallest new ``μ`` go to the radius."""
     l, u = _interval(mid, rad, q, domain)
-    active, dead = l >= 0, u <= 0
-    unstable = ~(active | dead)
-    s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
-    mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
-    alpha = torch.where(unstable, (u > -l).to(mid.dtype), active.to(mid.dtype))
-    state.relu[i] = (alpha, s, 2 * mu)  # the triangle relaxation, for a backward pass
+    s, mu = _deepz(i, l, u, state)
     B, rows = mid.shape[:2]
     flat_mu = mu.reshape(B, -1)
     k = min(int((flat_mu > 0).sum(1).max()), max(0, max_generators - (rows - q)))
@@ -270,12 +277,7 @@ def _relu_blocks(i, mid, rad, blocks, q, made, domain, state, max_generators):
     reach = symbols.reach(blocks, mid[:, 0])
     l = domain_min(mid - rad, domain) - reach
     u = -domain_min(-mid - rad, domain) + reach
-    active, dead = l >= 0, u <= 0
-    unstable = ~(active | dead)
-    s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
-    mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
-    alpha = torch.where(unstable, (u > -l).to(mid.dtype), active.to(mid.dtype))
-    state.relu[i] = (alpha, s, 2 * mu)  # the triangle relaxation, for a backward pass
+    s, mu = _deepz(i, l, u, state)
     B = mid.shape[0]
     flat_mu = mu.reshape(B, -1)
     left = max(0, max_generators - (made - q))
