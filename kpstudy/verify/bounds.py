@@ -168,7 +168,7 @@ def propagate(
             mid[:, 0] += node.offset[0]
             blocks = None
             if local and len(ins) == 1:
-                blocks = symbols.apply(op, ins[0][2], in_shapes[0], node.shape)
+                blocks = symbols.apply(op, ins[0][2], node.shape)
             elif local:
                 blocks = symbols.combine(op, [v[2] for v in ins], in_shapes)
             values[i] = (mid, rad, blocks)

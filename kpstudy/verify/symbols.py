@@ -134,7 +134,7 @@ def scale(blocks: list[Block], s: torch.Tensor) -> list[Block]:
     return out
 
 
-def apply(op: ops.Op, blocks: list[Block], in_shape, out_shape) -> list[Block]:
+def apply(op: ops.Op, blocks: list[Block], out_shape) -> list[Block]:
     """The blocks of ``op.linear(value)`` for a one-input local ``op``."""
     out = []
     for b in blocks:
@@ -159,11 +159,11 @@ def combine(op: ops.Op, inputs: list[list[Block]], in_shapes) -> list[Block]:
     out = []
     for start in starts:
         present = [bs.get(start) for bs in by_start]
-        some = next(b for b in present if b is not None)
-        y0 = min(b.y for b in present if b is not None)
-        x0 = min(b.x for b in present if b is not None)
-        y1 = max(b.y + b.coeff.shape[-2] for b in present if b is not None)
-        x1 = max(b.x + b.coeff.shape[-1] for b in present if b is not None)
+        found = [b for b in present if b is not None]
+        some = found[0]
+        y0, x0 = min(b.y for b in found), min(b.x for b in found)
+        y1 = max(b.y + b.coeff.shape[-2] for b in found)
+        x1 = max(b.x + b.coeff.shape[-1] for b in found)
         parts = []
         for b, shape in zip(present, in_shapes):
             if b is None:
