@@ -151,12 +151,15 @@ def certify(
     dict
         ``image_id``, ``n`` (perturbed vertices), ``status`` (``holds`` / ``violated`` /
         ``unknown``), ``time`` (verification, s), ``total_time`` (s), ``nodes``,
-        ``group_status`` (per keypoint), ``dv`` (K × [δu, δv], heatmap px), ``delta``,
-        ``objective``, ``seed_error`` (6 pose errors of the target model on the seed,
-        degrees and metres), ``seed_inside`` (that error lies in Ξ), ``counterexample``
-        (λ or None), ``empirical_inside`` (fraction of sampled hull images whose target
-        pose error lies in Ξ; None unless ``holds``), ``empirical_samples``; with
-        ``pose_bound_timeout``, the ``pb_*`` entries of :func:`kpstudy.pose_bound.pose_bound`.
+        ``group_status`` (per keypoint), ``margin_bracket`` (the worst keypoint's margin
+        over the hull: [root lower bound, smallest found by the attacks], see
+        :meth:`kpstudy.verify.Result.margin_bracket`), ``dv`` (K × [δu, δv], heatmap
+        px), ``delta``, ``objective``, ``seed_error`` (6 pose errors of the target model
+        on the seed, degrees and metres), ``seed_inside`` (that error lies in Ξ),
+        ``counterexample`` (λ or None), ``empirical_inside`` (fraction of sampled hull
+        images whose target pose error lies in Ξ; None unless ``holds``),
+        ``empirical_samples``; with ``pose_bound_timeout``, the ``pb_*`` entries of
+        :func:`kpstudy.pose_bound.pose_bound`.
     """
     start = time.perf_counter()
     alpha = float(_checks.positive(alpha, "alpha"))
@@ -201,6 +204,7 @@ def certify(
         "time": result.time,
         "nodes": result.nodes,
         "group_status": list(result.group_status),
+        "margin_bracket": list(result.margin_bracket()),
         "dv": allocation.dv.tolist(),
         "delta": allocation.delta,
         "objective": allocation.objective,

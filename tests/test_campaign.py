@@ -50,6 +50,8 @@ def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
     assert record["empirical_samples"] == 16
     assert 0.0 <= record["empirical_inside"] <= 1.0
     assert len(record["seed_error"]) == 6 and isinstance(record["seed_inside"], bool)
+    lower, upper = record["margin_bracket"]
+    assert upper is None or lower is None or lower <= upper + 1e-6
 
 
 def test_a_violated_instance_carries_a_point_of_the_hull(study):

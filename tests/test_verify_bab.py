@@ -40,6 +40,24 @@ def _check_counterexample(net, s, spec, result):
     assert m[0, c.group] <= 0 and result.group_status[c.group] == "violated"
 
 
+def _check_margin_ends(net, s, spec, result):
+    """The root's lower bound ≤ the smallest margin of the points tried ≤ the margin at
+    the first vertex; 'holds' groups had no point at or below zero, a counterexample's
+    group one at or below its margin."""
+    with torch.no_grad():
+        at_x0 = spec.group_min(spec.margins(net(s.image(s.root()[:, 0])).flatten(1)))[0]
+    tried = torch.tensor(result.stats["attack_margin"], dtype=torch.float64)
+    assert torch.all(tried <= at_x0.double() + 1e-6)  # float32 batches round differently
+    root = result.stats["root_margin"]
+    if root is not None:
+        assert torch.all(torch.tensor(root, dtype=torch.float64) <= tried + 1e-6)
+    for g, status in enumerate(result.group_status):
+        if status == "holds":
+            assert tried[g] > 0
+    if result.counterexample is not None:
+        assert tried[result.counterexample.group] <= result.counterexample.margin
+
+
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("set_type", [ConvexHull, Parallelotope])
 @pytest.mark.parametrize("method", ["forward", "zonotope"])
@@ -50,6 +68,7 @@ def test_verify_is_sound_and_decides_mixed_nets(seed, set_type, method):
     s = set_type(V)
     result = verify(net, s, spec, method=method, timeout=30)
     assert result.status in ("holds", "violated")  # complete on these small instances
+    _check_margin_ends(net, s, spec, result)
     if result.status == "holds":
         assert not _sampled_violation(net, s, spec, seed)
         assert result.group_status == ["holds", "holds"]
@@ -121,6 +140,7 @@ def test_budget_gives_unknown_not_holds():
     result = verify(net, ConvexHull(V), spec, max_nodes=1, attack_steps=0)
     assert result.status in ("unknown", "violated")
     assert result.nodes <= 1
+    _check_margin_ends(net, ConvexHull(V), spec, result)
 
 
 def test_timeout_inside_a_node_leaves_it_open(monkeypatch):
@@ -173,3 +193,23 @@ def test_close_margins_are_proved_in_float64_and_ties_are_violations():
         net[0].bias.zero_()  # a tie everywhere
     result = verify(net, hull, ArgmaxSpec([2], [0]))
     assert result.status == "violated" and result.counterexample.margin == 0.0
+
+
+@pytest.mark.parametrize("spread", [0.05, 0.3, 3.0])
+def test_margin_bracket_contains_the_sampled_minimum(spread):
+    """The worst keypoint's margin: root lower bound ≤ every sampled margin, and the
+    attacks' smallest margin ≤ the margin at the seed; no lower end without a root bound."""
+    net = MixedNet(3)
+    V = hull_vertices(3, 3, (2, 8, 8), spread=spread)
+    spec = _spec_at_seed(net, V[0], [3, 3])
+    s = ConvexHull(V)
+    result = verify(net, s, spec, max_nodes=1, method="zonotope")
+    lower, upper = result.margin_bracket()
+    with torch.no_grad():
+        sampled = spec.group_min(spec.margins(net(s.image(s.sample(2000, 0))).flatten(1)))
+        at_seed = spec.group_min(spec.margins(net(V[:1]).flatten(1)))
+    assert upper is not None and upper <= float(at_seed.min()) + 1e-6
+    if result.stats["root_margin"] is None:
+        assert lower is None
+    else:
+        assert lower is not None and lower <= float(sampled.min()) + 1e-6

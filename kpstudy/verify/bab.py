@@ -172,6 +172,7 @@ def verify(
         "timed_out": timed_out,
         "float64_rechecks": search.rechecks,
         "root_margin": None if root_margin is None else root_margin.tolist(),
+        "attack_margin": search.attack_margin.tolist(),
     }
     return Result(
         status, group_status, counterexample, time.perf_counter() - start, nodes_done, stats
@@ -223,6 +224,8 @@ class _Search:
         self.method, self.tol, self.memory, self.deadline = method, tol, memory, deadline
         self.graph64 = None
         self.rechecks = 0
+        #: Per group, the smallest margin the model showed at a point tried inside the set.
+        self.attack_margin = torch.full((spec.n_groups,), torch.inf, dtype=torch.float64)
         with torch.no_grad():  # float32 rounding scales with the outputs' magnitude
             y0 = graph.forward(example_input(input_set).to(graph.dtype))
         self.tol_abs = tol * (1.0 + float(y0.abs().max()))
@@ -331,6 +334,9 @@ class _Search:
         x = self.set.image(points)
         y = self.model(x).flatten(1)
         margin = self.spec.group_min(self.spec.margins(y).double())
+        if inside.any():
+            seen = margin[inside].min(0).values
+            self.attack_margin = torch.minimum(self.attack_margin, seen)
         bad = (margin <= 0) & mask & inside[:, None]
         found = {}
         for i, g in bad.nonzero().tolist():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -46,7 +47,12 @@ class Result:
     nodes : int
         Branch-and-bound nodes bounded.
     stats : dict
-        Bound statistics: the method, root lower margin per group, depth, float64 rechecks.
+        Search statistics: the method, depth, node batch, whether the budget ran out,
+        float64 rechecks, and per group two ends of its smallest margin over the set:
+        ``root_margin``, the root node's lower bound (None if no node was bounded), and
+        ``attack_margin``, the smallest margin the concrete model showed at the points
+        tried (vertices, centroids, gradient descent), an upper bound. For an
+        ``'unknown'`` group the true minimum lies between the two.
     """
 
     status: str
@@ -55,3 +61,16 @@ class Result:
     time: float
     nodes: int
     stats: dict = field(default_factory=dict)
+
+    def margin_bracket(self) -> tuple[float | None, float | None]:
+        """The worst keypoint's smallest margin over the set, bracketed: (the root
+        node's lower bound, the smallest margin the attacks found). The lower end is
+        ``None`` when some keypoint was not bounded at the root (no node bounded, or a
+        counterexample found first)."""
+        tried = self.stats.get("attack_margin") or []
+        active = [g for g, a in enumerate(tried) if math.isfinite(a)]  # groups with rows
+        upper = min((tried[g] for g in active), default=None)
+        root = self.stats.get("root_margin")
+        lows = [root[g] for g in active] if root is not None else []
+        lower = min(lows) if lows and all(math.isfinite(v) for v in lows) else None
+        return lower, upper
