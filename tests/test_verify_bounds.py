@@ -264,16 +264,22 @@ def test_symbols_of_parallel_branches_stay_distinct():
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_zonotope_symbol_blocks_equal_dense_stacks(seed, monkeypatch):
+@pytest.mark.parametrize("net_name", ["local", "pool"])
+def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     """Error symbols kept in spatial blocks (kpstudy.verify.symbols) give the bounds of
-    the dense stacks, through every block operator in awkward geometry, for a batch of
-    regions; and they contain 2000 sampled images."""
+    the dense stacks, for a batch of regions, through every block operator in awkward
+    geometry (LocalNet) and through the proxy's cell pools read block by block
+    (PoolProxy); and they contain 2000 sampled images."""
     from kpstudy.verify import bounds as B
     from kpstudy.verify import symbols
     from kpstudy.verify.graph import trace
 
-    net = LocalNet(seed).double()
-    hull = ConvexHull(hull_vertices(seed, 3, (2, 11, 9), spread=0.3, dtype=torch.float64))
+    if net_name == "local":
+        net, shape = LocalNet(seed).double(), (2, 11, 9)
+    else:
+        dvs = [((1, 1), (1, 2)), ((2, 0), (0, 1)), ((1, 2), (2, 2)), ((0, 1), (3, 1))][seed]
+        net, shape = PoolProxy(seed, dvs=dvs).double(), (1, 10, 10)
+    hull = ConvexHull(hull_vertices(seed, 3, shape, spread=0.3, dtype=torch.float64))
     graph = trace(net, hull.vertices[:1])
     nodes = hull.split(hull.split(hull.root()))  # four regions in one batch
     region = B.node_region(hull, nodes, graph.dtype)
@@ -284,10 +290,10 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(seed, monkeypatch):
         dense, _ = B.propagate(graph, region, zonotope=True)
     # The same symbols (blocks number them by tile, padded to the batch): every linear
     # function of the output has the same bounds, margins included.
-    q = region.mid.shape[1]
+    q, outputs = region.mid.shape[1], y.shape[1]
     g = torch.Generator().manual_seed(seed)
-    eye = torch.eye(5, dtype=torch.float64)
-    A = torch.cat([torch.randn(8, 5, dtype=torch.float64, generator=g), eye, -eye])
+    eye = torch.eye(outputs, dtype=torch.float64)
+    A = torch.cat([torch.randn(8, outputs, dtype=torch.float64, generator=g), eye, -eye])
     lows = []
     for out in (blocks, dense):
         coeff = out.mid @ A.T

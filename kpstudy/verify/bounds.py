@@ -161,9 +161,12 @@ def propagate(
             local = all(v[2] is not None for v in ins) and symbols.is_local(
                 op, in_shapes, node.shape
             )
-            mids = [v[0] for v in ins] if local else [dense(v) for v in ins]
-            rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0 in it
-            mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
+            if ins[0][2] is not None and symbols.is_cell_pool(op):
+                mid = symbols.cell_pool(op.m, ins[0][0], ins[0][2], made)
+            else:
+                mids = [v[0] for v in ins] if local else [dense(v) for v in ins]
+                rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0
+                mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
             rad = _apply(op.abs_linear, [v[1] for v in ins], B, q)
             mid[:, 0] += node.offset[0]
             blocks = None

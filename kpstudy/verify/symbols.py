@@ -8,7 +8,9 @@ the symbols made in one tile of one ReLU share a :class:`Block`: their coefficie
 ``(B, r, C, h, w)`` on a window of a ``(C, H, W)`` activation, zero outside it.
 Convolutions, transposed convolutions, per-channel maps and channel slices map blocks to
 blocks (:func:`apply`), sums and channel concatenations merge them (:func:`combine`);
-any other operator gets the dense stack (:func:`dense`). Within one value a symbol lives
+the proxy's cell pool reads each block into the dense stack of its cells
+(:func:`cell_pool`), so the full-resolution dense stack is never formed; any other
+operator gets the dense stack (:func:`dense`). Within one value a symbol lives
 in one block only, so ``Σ_e |coefficient|`` (:func:`reach`) is exact.
 """
 
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from kpstudy.pooling import CellAvgPool2d
 from kpstudy.verify import ops
 
 #: Tiles per side in which one ReLU's new symbols are grouped.
@@ -62,6 +65,12 @@ def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
     return False
 
 
+def is_cell_pool(op: ops.Op) -> bool:
+    """Whether ``op`` is the proxy's cell pool with cells as wide as their stride."""
+    m = getattr(op, "m", None)
+    return isinstance(op, ops.Pool) and isinstance(m, CellAvgPool2d) and m.kernel_size == m.stride
+
+
 def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
     """``Σ_i |x[:, i]|`` for ``x (B, r, …)``, a few rows at a time (``vector_norm`` and
     ``abs().sum(1)`` over a middle dimension are 4–14× slower on the CPU)."""
@@ -85,6 +94,29 @@ def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     out[:, : mid.shape[1]] = mid
     for b in blocks:
         out[(slice(None), slice(b.start, b.start + b.rows), slice(None), *b.window())] = b.coeff
+    return out
+
+
+def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: int):
+    """The dense stack ``(B, rows, 1, n_v, n_h)`` of the cell pool ``m`` of a value held
+    as ``θ`` rows ``mid (B, q, 1, H, W)`` and symbol ``blocks`` (:func:`is_cell_pool`).
+
+    A cell is a ``k_v × k_h`` window of the padded map, so each block is padded to whole
+    cells (a few pixels) and pooled on its own; the ``(B, rows, 1, H, W)`` stack that
+    :func:`dense` would build and pad is never formed."""
+    B, q = mid.shape[:2]
+    out = mid.new_zeros(B, rows, 1, m.n_v, m.n_h)
+    out[:, :q] = m(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, m.n_v, m.n_h)
+    (kv, kh), (left, _, top, _) = m.kernel_size, m.pad
+    scale = m.scale.to(mid.dtype)
+    for b in blocks:
+        r, (h, w) = b.rows, b.coeff.shape[-2:]
+        y, x = b.y + top, b.x + left  # the window in the padded map
+        c0, c1, d0, d1 = y // kv, -(-(y + h) // kv), x // kh, -(-(x + w) // kh)
+        pad = (x - d0 * kh, d1 * kh - x - w, y - c0 * kv, c1 * kv - y - h)
+        coeff = F.pad(b.coeff.reshape(B * r, 1, h, w), pad)
+        pooled = F.avg_pool2d(coeff, (kv, kh)) * scale[c0:c1, d0:d1]
+        out[:, b.start : b.start + r, :, c0:c1, d0:d1] = pooled.reshape(B, r, 1, c1 - c0, d1 - d0)
     return out
 
 
