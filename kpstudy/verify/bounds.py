@@ -31,9 +31,10 @@ Methods
     cost is one pass of every layer per symbol (thousands of symbols on the CNN), on the
     window the symbol reaches: symbols made in one tile of a ReLU share a spatial block
     (:mod:`kpstudy.verify.symbols`) until an operator that mixes space (a pool, a flatten,
-    a linear layer) needs the dense stack. Symbols are numbered across branches, so two
-    ReLU branches never share one. Past :func:`symbol_budget` symbols the smallest
-    further errors go into the radius instead (sound, looser).
+    a linear layer) needs the dense stack; the proxy's cell pool reads the blocks itself.
+    Symbols are numbered across branches, so two ReLU branches never share one. Past
+    :func:`symbol_budget` symbols the smallest further errors go into the radius instead
+    (sound, looser).
 
 Floating point: bounds are computed in the graph's dtype; the verifier asks for a
 margin above a tolerance or recomputes a node in float64 before it says ``holds``.
