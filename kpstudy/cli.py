@@ -22,12 +22,14 @@ def main(argv=None) -> int:
     rep.add_argument("--stages", nargs="+", help="data, train, notebooks, report (default all)")
     rep.add_argument("--scheduler", help="Dask scheduler address for the campaigns")
 
-    from kpstudy.train import TrainConfig
+    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig
 
     default = TrainConfig()
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
-    tr.add_argument("--backbone", default=default.backbone, help="cnn (default) or resnet18")
+    tr.add_argument(
+        "--backbone", default=default.backbone, help="cnn (default), cnn_affine or resnet18"
+    )
     tr.add_argument("--epochs", type=int, default=default.epochs)
     tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")
     tr.add_argument("--batch-size", type=int, default=default.batch_size)
@@ -41,6 +43,28 @@ def main(argv=None) -> int:
     tr.add_argument("--seed", type=int, default=default.seed)
     tr.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     tr.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    cert = tr.add_argument_group("certified training (a bound term over random hulls)")
+    cert.add_argument(
+        "--certified",
+        action="store_true",
+        help=f"add the bound term with weight {CERTIFIED_WEIGHT} (--certified-weight sets it)",
+    )
+    cert.add_argument("--certified-weight", type=float, help="weight of the bound term")
+    cert.add_argument(
+        "--certified-hulls", type=int, default=default.certified_hulls, help="hulls per batch"
+    )
+    cert.add_argument(
+        "--certified-start",
+        type=int,
+        default=default.certified_start,
+        help="natural epochs before the term",
+    )
+    cert.add_argument(
+        "--certified-ramp",
+        type=int,
+        default=default.certified_ramp,
+        help="epochs over which the hulls grow to full size",
+    )
 
     ev = sub.add_parser("evaluate", help="keypoint and pose metrics of a trained checkpoint")
     ev.add_argument("--checkpoint", required=True)
@@ -107,12 +131,14 @@ def _train(args) -> None:
 
     import torch
 
-    from kpstudy.train import TrainConfig, train
+    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig, train
 
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"threads: expected a positive integer, got {args.threads}")
         torch.set_num_threads(args.threads)
+    if args.certified_weight is None:
+        args.certified_weight = CERTIFIED_WEIGHT if args.certified else 0.0
     config = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
     state = train(args.data, args.out, config, device=args.device)
     print(json.dumps(state["history"][-1]))

@@ -8,6 +8,14 @@ error of the DSNT keypoints in heatmap pixels. Keypoints outside the image are l
 Augmentation keeps the keypoint geometry: colour jitter and Gaussian noise (kornia).
 AdamW with a one-cycle schedule.
 
+With ``certified_weight`` > 0 the loss adds that weight times a bound term
+(:mod:`kpstudy.certified`): the heatmap loss's worst case, bounded by kpstudy.verify's
+forward bounds over random hulls of the study's kinds around the first
+``certified_hulls`` images of each batch. The term starts after ``certified_start``
+natural epochs and its hulls grow from the image itself to full size over
+``certified_ramp`` epochs, quadratically in time (the warm-up of certified training:
+slow while the bounds are loosest).
+
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
 the metric history; training again with the same configuration resumes from it.
@@ -33,6 +41,8 @@ from kpstudy.io import write_bytes_atomic
 from kpstudy.models import BACKBONES, argmax_keypoints, build_backbone, dsnt_keypoints
 
 FORMAT = "kpstudy-checkpoint/1"
+#: The bound term's weight of ``train --certified`` (the verification-friendly CNN's).
+CERTIFIED_WEIGHT = 0.5
 
 
 @dataclass(frozen=True)
@@ -42,6 +52,7 @@ class TrainConfig:
     ``images``: use at most this many training images (``None``: all).
     ``sigma``: target Gaussian std, heatmap pixels. ``jitter``: brightness, contrast and
     saturation jitter strength. ``noise``: Gaussian noise std on the [0, 1] input.
+    ``certified_*``: the bound term (module docstring); weight 0 trains naturally.
     """
 
     backbone: str = "cnn"
@@ -55,13 +66,17 @@ class TrainConfig:
     noise: float = 0.02
     images: int | None = None
     seed: int = 0
+    certified_weight: float = 0.0
+    certified_hulls: int = 8
+    certified_start: int = 1
+    certified_ramp: int = 4
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
             raise ValueError(
                 f"backbone: expected one of {sorted(BACKBONES)}, got {self.backbone!r}"
             )
-        for name in ("epochs", "batch_size"):
+        for name in ("epochs", "batch_size", "certified_hulls", "certified_ramp"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
@@ -70,7 +85,13 @@ class TrainConfig:
         for name in ("lr", "sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
-        for name in ("weight_decay", "dsnt_weight", "jitter", "noise"):
+        if isinstance(self.certified_start, bool) or not (
+            isinstance(self.certified_start, int) and self.certified_start >= 0
+        ):
+            raise ValueError(
+                f"certified_start: expected an integer >= 0, got {self.certified_start!r}"
+            )
+        for name in ("weight_decay", "dsnt_weight", "jitter", "noise", "certified_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {getattr(self, name)!r}")
 
@@ -180,13 +201,17 @@ def train(
         optimiser.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
     augment = _augmentation(config).to(device)
+    certify = _CertifiedTerm(config, backbone, train_set) if config.certified_weight else None
     weights = torch.from_numpy((train_set.visibility > 0).astype(np.float32)).to(device)
     keypoints = torch.from_numpy(train_set.keypoints.astype(np.float32)).to(device)
     for epoch in range(state["epoch"], config.epochs):
         start = time.perf_counter()
         torch.manual_seed(config.seed * 100_003 + epoch)
         order = torch.randperm(len(train_set))
+        if certify is not None:
+            certify.sampler.reseed(epoch)
         backbone.train()
+        bound_total = 0.0
         total, bar = (
             0.0,
             tqdm(range(steps), desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress),
@@ -199,6 +224,12 @@ def train(
             loss = heatmap_loss(
                 backbone(x), keypoints[idx], weights[idx], config.sigma, config.dsnt_weight
             )
+            if certify is not None and epoch >= config.certified_start:
+                done = (epoch - config.certified_start + step / steps) / config.certified_ramp
+                scale = min(1.0, done) ** 2  # slow at first, while the bounds are loosest
+                bound = certify(x, keypoints[idx], weights[idx], scale)
+                loss = loss + config.certified_weight * bound
+                bound_total += bound.item() * len(idx)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
@@ -212,6 +243,7 @@ def train(
             epoch=epoch + 1,
             loss=total / len(train_set),
             seconds=time.perf_counter() - start,
+            **({"bound_loss": bound_total / len(train_set)} if certify is not None else {}),
             **{f"val_{k}": v for k, v in pck(arg, val_set.keypoints, vis).items()},
             val_dsnt_mean_error=pck(dsnt, val_set.keypoints, vis)["mean_error"],
         )
@@ -306,6 +338,33 @@ def _save(path: Path, state: dict) -> None:
 def _batch(images: np.ndarray) -> torch.Tensor:
     """Preprocessed ``(B, s, s, 3)`` [0, 255] → normalised ``(B, 3, s, s)`` float32."""
     return torch.from_numpy(np.ascontiguousarray(images, np.float32)).permute(0, 3, 1, 2) / 255.0
+
+
+class _CertifiedTerm:
+    """The bound term of one training run: a hull sampler and the backbone's
+    differentiable graph (:mod:`kpstudy.certified`)."""
+
+    def __init__(self, config: TrainConfig, backbone: nn.Module, train_set: KeypointSet):
+        from kpstudy.certified import HullSampler, bound_graph, occluder_patches
+
+        W, H = train_set.image_size
+        s = train_set.input_size
+        self.hulls, self.sigma = config.certified_hulls, config.sigma
+        self.sampler = HullSampler(occluder_patches(seed=config.seed), (s / W, s / H), config.seed)
+        self.backbone = backbone
+        self.graph = bound_graph(backbone)
+
+    def __call__(self, x, keypoints, weights, scale: float) -> torch.Tensor:
+        from kpstudy.certified import hull_bounds, robust_heatmap_loss
+
+        n = min(self.hulls, len(x))
+        vertices = self.sampler(x[:n].contiguous())
+        self.backbone.eval()  # batch norms as the verifier sees them
+        try:
+            lower, upper = hull_bounds(self.graph, vertices, scale)
+        finally:
+            self.backbone.train()
+        return robust_heatmap_loss(lower, upper, keypoints[:n], weights[:n], self.sigma)
 
 
 def _augmentation(config: TrainConfig) -> nn.Module:

@@ -9,7 +9,7 @@ bounds (:mod:`kpstudy.verify.graph`).
 
 from torch import nn
 
-from kpstudy.models.cnn import HeatmapCNN
+from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder
 from kpstudy.models.heads import (
     TargetModel,
     argmax_keypoints,
@@ -19,7 +19,11 @@ from kpstudy.models.heads import (
 from kpstudy.models.proxy import KeypointProxy, build_proxy
 from kpstudy.models.resnet import HeatmapResNet18
 
-BACKBONES = {"cnn": HeatmapCNN, "resnet18": HeatmapResNet18}
+BACKBONES = {
+    "cnn": HeatmapCNN,
+    "cnn_affine": HeatmapCNNAffineDecoder,
+    "resnet18": HeatmapResNet18,
+}
 
 
 def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
@@ -27,9 +31,11 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
 
     Parameters
     ----------
-    name : {'cnn', 'resnet18'}
-        ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'resnet18'``: 256×256
-        input and heatmaps, ~1.25e7 parameters.
+    name : {'cnn', 'cnn_affine', 'resnet18'}
+        ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'cnn_affine'``: the same
+        with an affine decoder (no ReLU after the transposed convolutions, the
+        verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps, ~1.25e7
+        parameters.
     num_keypoints : int
         Heatmap channels.
 
@@ -48,6 +54,7 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
 __all__ = [
     "BACKBONES",
     "HeatmapCNN",
+    "HeatmapCNNAffineDecoder",
     "HeatmapResNet18",
     "KeypointProxy",
     "TargetModel",

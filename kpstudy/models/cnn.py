@@ -4,6 +4,11 @@ Input ``(B, 3, 64, 64)`` (a normalised, resized image) → unnormalised heatmaps
 ``(B, K, 64, 64)``. Encoder: 3×3 convolutions, two of stride 2 (64 → 16 px); decoder:
 transposed convolutions back to 64 px; batch norm and ReLU after every layer but the
 last. About 6.6e5 parameters for K = 23, as in the paper (6.57e5).
+
+:class:`HeatmapCNNAffineDecoder` is the verification-friendly variant: the same layers
+with no ReLU after the transposed convolutions, so the decoder (its batch norms folded)
+is one affine map, a learned linear upsampler. Every bound method maps a zonotope through
+it exactly: the heatmaps' bounds are as tight as the encoder's.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ class HeatmapCNN(HeatmapBackbone):
     input_size = 64
     heatmap_size = 64
 
+    decoder_relu = True
+
     def __init__(self, keypoints: int = 23) -> None:
         layers: list[nn.Module] = []
         for c_in, c_out, stride in _ENCODER:
@@ -42,7 +49,16 @@ class HeatmapCNN(HeatmapBackbone):
         for c_in, c_out, stride in _DECODER:
             kernel = 4 if stride == 2 else 3
             layers.append(nn.ConvTranspose2d(c_in, c_out, kernel, stride, 1, bias=False))
-            layers += [nn.BatchNorm2d(c_out), nn.ReLU()]
+            layers.append(nn.BatchNorm2d(c_out))
+            if self.decoder_relu:
+                layers.append(nn.ReLU())
         layers.append(nn.ConvTranspose2d(_DECODER[-1][1], keypoints, 3, 1, 1))
         super().__init__(*layers)
         self.keypoints = keypoints
+
+
+class HeatmapCNNAffineDecoder(HeatmapCNN):
+    """:class:`HeatmapCNN` without the decoder's ReLUs: ``(B, 3, 64, 64) → (B, K, 64, 64)``,
+    the same parameters, the heatmaps an affine function of the encoder's last ReLU."""
+
+    decoder_relu = False

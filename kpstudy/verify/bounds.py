@@ -100,10 +100,15 @@ class Region:
         """Boxes ``lower, upper (B, *S)``."""
         return cls(((lower + upper) / 2)[:, None], ((upper - lower) / 2)[:, None], "point")
 
-    def to_interval(self) -> Region:
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Concrete lower and upper bounds ``(B, *S)`` over the domain (no error symbols:
+        ``mid`` has the ``q`` rows of ``rad``)."""
         low = domain_min(self.mid - self.rad, self.domain)
         high = -domain_min(-(self.mid + self.rad), self.domain)
-        return Region.interval(low, high)
+        return low, high
+
+    def to_interval(self) -> Region:
+        return Region.interval(*self.bounds())
 
     @property
     def batch(self) -> int:
@@ -169,7 +174,7 @@ def propagate(
                 rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0
                 mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
             rad = _apply(op.abs_linear, [v[1] for v in ins], B, q)
-            mid[:, 0] += node.offset[0]
+            mid[:, 0] += graph.offset(i)[0]
             blocks = None
             if local and len(ins) == 1:
                 blocks = symbols.apply(op, ins[0][2], node.shape)
@@ -235,7 +240,10 @@ def _relu(i, mid, rad, domain, state):
     active, dead = l >= 0, u <= 0
     unstable = ~(active | dead)
     s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
-    alpha = torch.where(unstable, (u > -l).to(mid.dtype), active.to(mid.dtype))
+    # The lower line: slope 1 or 0, whichever leaves the smaller area. An interval has no
+    # θ to carry, so there it is 0: max(l, 0), textbook interval arithmetic.
+    steep = (u > -l) if mid.shape[1] > 1 else torch.zeros_like(unstable)
+    alpha = torch.where(unstable, steep.to(mid.dtype), active.to(mid.dtype))
     offset = torch.where(unstable, -s * l, torch.zeros_like(l))  # upper: s·z − s·l
     state.relu[i] = (alpha, s, offset)
     new_low, new_up = alpha[:, None] * low, s[:, None] * up
@@ -425,7 +433,7 @@ def _backward(
         node = graph.nodes[i]
         op = node.op
         if op.kind == "affine":
-            const += (a * node.offset[None]).flatten(2).sum(-1)
+            const += (a * graph.offset(i)[None]).flatten(2).sum(-1)
             grads = _vjp(op.linear, [graph.nodes[j].shape for j in node.inputs], a, B * r)
         elif op.kind == "relu":
             alpha, s, offset = state.relu[i]

@@ -5,7 +5,10 @@ Supported: ``Conv2d``, ``ConvTranspose2d``, ``BatchNorm2d`` (eval), ``ReLU``,
 ``Linear``, ``Flatten``/``flatten``, residual ``+``, ``torch.cat``, slicing that keeps the
 batch dimension, ``Identity`` and ``Dropout`` (eval). Anything else is refused with an
 error naming the operation and the node. A batch norm that alone follows a convolution
-is folded into it (one node, named ``conv+bn``).
+is folded into it (one node, named ``conv+bn``), unless the graph is traced
+``differentiable``: then every operator keeps the model's own modules and the affine
+offsets are computed from them at each use, so bounds carry gradients to every parameter
+(certified training, :mod:`kpstudy.certified`).
 """
 
 from __future__ import annotations
@@ -62,9 +65,10 @@ class Node:
 class Graph:
     """A traced model: :attr:`nodes` in topological order, the last one the output."""
 
-    def __init__(self, nodes: list[Node], dtype: torch.dtype) -> None:
+    def __init__(self, nodes: list[Node], dtype: torch.dtype, differentiable: bool = False) -> None:
         self.nodes = nodes
         self.dtype = dtype
+        self.differentiable = differentiable
         self.consumers = [[] for _ in nodes]
         for i, node in enumerate(nodes):
             for j in node.inputs:
@@ -84,9 +88,23 @@ class Graph:
             values.append(node.op.forward(*(values[j] for j in node.inputs)))
         return values[-1]
 
+    def offset(self, i: int) -> torch.Tensor:
+        """``forward(0)`` of affine node ``i``, ``(1, *shape)``: stored, or computed from the
+        live modules (with their gradients) in a differentiable graph."""
+        node = self.nodes[i]
+        if node.offset is not None:
+            return node.offset
+        zeros = [torch.zeros(1, *self.nodes[j].shape, dtype=self.dtype) for j in node.inputs]
+        return node.op.forward(*zeros)
 
-def trace(model: nn.Module, example: torch.Tensor) -> Graph:
+
+def trace(model: nn.Module, example: torch.Tensor, *, differentiable: bool = False) -> Graph:
     """The graph of ``model`` for inputs shaped like ``example (1, *S)``.
+
+    With ``differentiable``, batch norms stay separate nodes and no offset is stored
+    (:meth:`Graph.offset` computes them): bounds then have gradients with respect to the
+    model's parameters. The model's batch norms must be in eval mode whenever the graph is
+    used.
 
     Raises
     ------
@@ -122,14 +140,15 @@ def trace(model: nn.Module, example: torch.Tensor) -> Graph:
         nodes.append(Node(n.name, op, ins, ()))
     if output != len(nodes) - 1:
         raise ValueError("model: the output must be the last operation")
-    nodes = _fold_batch_norms(nodes)
+    if not differentiable:
+        nodes = _fold_batch_norms(nodes)
     try:
-        _infer_shapes(nodes, example.to(dtype))
+        _infer_shapes(nodes, example.to(dtype), offsets=not differentiable)
     except RuntimeError as exc:  # e.g. channels or sizes that do not fit the first layer
         raise ValueError(
             f"input_set: images of shape {tuple(example.shape[1:])} do not fit the model ({exc})"
         ) from exc
-    return Graph(nodes, dtype)
+    return Graph(nodes, dtype, differentiable)
 
 
 def _operator(n: fx.Node, modules: dict) -> tuple[ops.Op, list[fx.Node]]:
@@ -208,8 +227,9 @@ def _tensor_args(n: fx.Node, count: int, where: str, args=None) -> list[fx.Node]
     return args
 
 
-def _infer_shapes(nodes: list[Node], example: torch.Tensor) -> None:
-    """Fill in output shapes and affine offsets; refuse ops that would mix the batch."""
+def _infer_shapes(nodes: list[Node], example: torch.Tensor, offsets: bool = True) -> None:
+    """Fill in output shapes and (with ``offsets``) affine offsets; refuse ops that would
+    mix the batch."""
     values = [example]
     with torch.no_grad():
         for node in nodes[1:]:
@@ -224,6 +244,6 @@ def _infer_shapes(nodes: list[Node], example: torch.Tensor) -> None:
                     )
             y = op.forward(*xs)
             node.shape = tuple(y.shape[1:])
-            if op.kind == "affine":
+            if offsets and op.kind == "affine":
                 node.offset = op.forward(*(torch.zeros_like(x) for x in xs))
             values.append(y)

@@ -1,0 +1,179 @@
+"""Verification-friendly training: random hulls of the study's kinds and a bound term.
+
+Certified training (Gowal et al. 2018; Zhang et al. 2020; Shi et al. 2021) adds to the
+natural loss a loss on *sound bounds* of the network over perturbation sets, so that the
+trained network is one its verifier can prove things about. Here the sets are convex
+hulls of the study's kinds, drawn afresh for every batch in model-input space
+(:class:`HullSampler`): the image and 1–4 copies with an occluder patch (rendered by
+data_gen from its meshes) pasted at a random place, the image ± a brightness or contrast
+change, or 1–4 copies with a 3×3 block of random values. The bounds are kpstudy.verify's
+own (:func:`hull_bounds`, method ``'forward'`` on a differentiable graph), and the term
+(:func:`robust_heatmap_loss`) is the heatmap loss's worst case over the hull, bounded
+above: ``Σ t log t − Σ_j t_j l_j + log Σ_j exp u_j`` for the target distribution ``t``
+and the bounds ``l ≤ heatmap ≤ u``. It equals the natural loss when the bounds are tight
+and grows with their width where it matters: low at the keypoint, high elsewhere, which
+is what the proxy's "the keypoint's cell wins" needs.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+from kpstudy.verify.bounds import Region, propagate
+from kpstudy.verify.graph import Graph, trace
+
+#: Hull kinds drawn by :class:`HullSampler` and their probabilities.
+KINDS = {"objects": 0.5, "blocks": 0.2, "brightness": 0.15, "contrast": 0.15}
+MAX_COPIES = 4  # perturbed images of an object or block hull (the study's m ≤ 4)
+BLOCK = 3  # side of a pixel block, input pixels (data_gen.perturb.BLOCK)
+BRIGHTNESS = 2.0 / 255  # the study's largest brightness change, in [0, 1] units
+CONTRAST = 1e-2  # the study's largest contrast change
+
+
+def occluder_patches(px_per_m: float = 3.0, seed: int = 0) -> list[np.ndarray]:
+    """One RGBA patch ``(h, w, 4)`` float32 per occluder of data_gen's catalog (colour in
+    [0, 255], alpha in [0, 1]), rendered top-down with its shadow at ``px_per_m`` under a
+    sun drawn with ``seed``, at a random yaw."""
+    from data_gen.occluders import occluder_catalog
+    from data_gen.patches import PatchRenderer
+    from data_gen.render import Light
+
+    rng = np.random.default_rng([seed, 7])
+    renderer = PatchRenderer()
+    patches = []
+    for occluder in occluder_catalog():
+        az, el = rng.uniform(0, 2 * np.pi), rng.uniform(np.deg2rad(30), np.deg2rad(80))
+        light = Light(np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]))
+        patch = renderer.render(
+            occluder.name, occluder.mesh, px_per_m, light, float(rng.uniform(0, 360))
+        )
+        if patch.size:
+            patches.append(patch)
+    return patches
+
+
+class HullSampler:
+    """Random convex hulls of the study's kinds around model-input images.
+
+    Parameters
+    ----------
+    patches : list of ndarray (h, w, 4)
+        Occluder patches (:func:`occluder_patches`).
+    aspect : (float, float)
+        Resize factors ``(sx, sy)`` of the dataset's images to the model input (a patch at
+        the image's resolution shrinks by them): data_gen's 640×400 renders at 64×64 give
+        (0.1, 0.16).
+    seed : int
+    patch_px : (float, float)
+        Range of a pasted patch's longer side, in image pixels before the resize (the
+        study's occluders span 8–150 px at 1920 px width, 2.7–50 px at 640).
+    """
+
+    def __init__(self, patches, aspect=(0.1, 0.16), seed: int = 0, patch_px=(3.0, 50.0)):
+        if not patches:
+            raise ValueError("patches: expected at least one occluder patch")
+        self.patches = list(patches)
+        self.aspect = tuple(float(a) for a in aspect)
+        self.patch_px = tuple(float(p) for p in patch_px)
+        self.seed = seed
+        self.reseed(0)
+
+    def reseed(self, epoch: int) -> None:
+        """Draw from the stream of ``epoch`` (a resumed training run draws the same hulls)."""
+        self.rng = np.random.default_rng([self.seed, 11, epoch])
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        """Hull vertices ``(B, 1 + MAX_COPIES, 3, s, s)`` of images ``(B, 3, s, s)`` in
+        [0, 1]: row 0 the image itself; hulls with fewer perturbed images repeat it (a
+        zero direction adds nothing to the hull)."""
+        x = images.detach().cpu().numpy()
+        out = np.repeat(x[:, None], 1 + MAX_COPIES, 1)
+        kinds, p = list(KINDS), np.array(list(KINDS.values()))
+        for b in range(len(x)):
+            kind = kinds[self.rng.choice(len(kinds), p=p / p.sum())]
+            if kind == "brightness":
+                d = self.rng.uniform(0, BRIGHTNESS)
+                out[b, 1], out[b, 2] = np.clip(x[b] + d, 0, 1), np.clip(x[b] - d, 0, 1)
+            elif kind == "contrast":
+                c = self.rng.uniform(0, CONTRAST)
+                out[b, 1], out[b, 2] = np.clip(x[b] * (1 + c), 0, 1), np.clip(x[b] * (1 - c), 0, 1)
+            else:
+                paint = self._paste if kind == "objects" else self._block
+                for k in range(1, 1 + self.rng.integers(1, MAX_COPIES + 1)):
+                    out[b, k] = paint(x[b])
+        return torch.from_numpy(out).to(images.device, images.dtype)
+
+    def _block(self, image: np.ndarray) -> np.ndarray:
+        _, H, W = image.shape
+        y, x = self.rng.integers(0, H - BLOCK + 1), self.rng.integers(0, W - BLOCK + 1)
+        out = image.copy()
+        out[:, y : y + BLOCK, x : x + BLOCK] = self.rng.uniform(0, 1, (3, BLOCK, BLOCK))
+        return out
+
+    def _paste(self, image: np.ndarray) -> np.ndarray:
+        """One patch, resized to a random size at the input's scale, alpha-composited at a
+        random place (a patch smaller than a pixel covers one pixel with its area as alpha)."""
+        patch = self.patches[self.rng.integers(len(self.patches))]
+        h, w = patch.shape[:2]
+        side = self.rng.uniform(*self.patch_px) / max(h, w)  # image pixels per patch pixel
+        ww, hh = w * side * self.aspect[0], h * side * self.aspect[1]
+        size = (max(1, round(ww)), max(1, round(hh)))
+        rgba = patch.copy()
+        rgba[..., :3] *= rgba[..., 3:]  # premultiplied: colour and coverage average together
+        rgba = cv2.resize(rgba, size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], 4)
+        rgba[..., 3] *= min(1.0, ww) * min(1.0, hh)  # sub-pixel patches cover part of a pixel
+        alpha = rgba[..., 3]
+        colour = rgba[..., :3] / np.maximum(rgba[..., 3:], 1e-6)
+        _, H, W = image.shape
+        y, x = self.rng.integers(0, H - size[1] + 1), self.rng.integers(0, W - size[0] + 1)
+        out = image.copy()
+        region = out[:, y : y + size[1], x : x + size[0]]
+        out[:, y : y + size[1], x : x + size[0]] = (
+            region * (1 - alpha) + (np.clip(colour, 0, 255).transpose(2, 0, 1) / 255.0) * alpha
+        )
+        return out
+
+
+def bound_graph(backbone: torch.nn.Module) -> Graph:
+    """The differentiable graph of ``backbone`` (traced in eval mode, the mode the bounds
+    must be computed in)."""
+    mode = backbone.training
+    backbone.eval()
+    try:
+        s = backbone.input_size
+        example = torch.zeros(1, 3, s, s, dtype=next(backbone.parameters()).dtype)
+        return trace(backbone, example, differentiable=True)
+    finally:
+        backbone.train(mode)
+
+
+def hull_bounds(graph: Graph, vertices: torch.Tensor, scale: float = 1.0):
+    """Sound lower and upper bounds ``(B, K, H, W)`` of the heatmaps over each hull.
+
+    ``vertices (B, n+1, 3, s, s)``: row 0 the image, rows 1… the perturbed images; the
+    hull is shrunk towards the image by ``scale`` ∈ [0, 1] (a warm-up schedule). Method
+    ``'forward'`` (linear bounds in λ, triangle ReLUs), differentiable in the graph's
+    parameters when it was traced ``differentiable`` (its batch norms in eval mode).
+    """
+    if not 0.0 <= scale <= 1.0:
+        raise ValueError(f"scale: expected a number in [0, 1], got {scale!r}")
+    origin = vertices[:, :1]
+    coeff = torch.cat([origin, (vertices[:, 1:] - origin) * scale], 1)
+    out, _ = propagate(graph, Region.affine(coeff, "simplex"))
+    return out.bounds()
+
+
+def robust_heatmap_loss(lower, upper, keypoints, weights, sigma: float) -> torch.Tensor:
+    """Upper bound of the heatmap KL loss over every heatmap between ``lower`` and
+    ``upper`` ``(B, K, H, W)``: ``Σ t log t − Σ t·l + logsumexp(u)`` per keypoint, averaged
+    over the keypoints with ``weights (B, K)`` > 0 (targets ``t`` as
+    :func:`kpstudy.train.heatmap_targets` at ``keypoints (B, K, 2)``, heatmap pixels)."""
+    from kpstudy.train import heatmap_targets
+
+    H = lower.shape[-1]
+    t = heatmap_targets(keypoints, H, sigma).flatten(2)
+    entropy = (t * torch.log(t.clamp_min(1e-30))).sum(-1)
+    loss = entropy - (t * lower.flatten(2)).sum(-1) + torch.logsumexp(upper.flatten(2), -1)
+    return (loss * weights).sum() / weights.sum().clamp_min(1.0)

@@ -1,0 +1,202 @@
+"""Verification-friendly training: the affine-decoder CNN, random hulls, the bound term
+(sound and differentiable), interval arithmetic, and a tiny certified training run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from kpstudy.certified import (
+    MAX_COPIES,
+    HullSampler,
+    bound_graph,
+    hull_bounds,
+    occluder_patches,
+    robust_heatmap_loss,
+)
+from kpstudy.models import build_backbone
+from kpstudy.train import TrainConfig, heatmap_loss, load_checkpoint, train
+from kpstudy.verify import Box, ConvexHull, output_bounds
+from kpstudy.verify.bounds import Region, propagate
+from kpstudy.verify.graph import trace
+from tests.verify_nets import MixedNet
+
+
+@pytest.fixture(scope="module")
+def patches():
+    return occluder_patches()
+
+
+class SmallHeatmapNet(nn.Module):
+    """``(B, 3, 8, 8) → (B, 2, 8, 8)``: conv, batch norm, ReLU, affine upsampler."""
+
+    input_size = heatmap_size = 8
+
+    def __init__(self, seed=0):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.net = nn.Sequential(
+            nn.Conv2d(3, 6, 3, 2, 1),
+            nn.BatchNorm2d(6),
+            nn.ReLU(),
+            nn.Conv2d(6, 6, 3, 1, 1),
+            nn.ReLU(),
+            nn.ConvTranspose2d(6, 4, 4, 2, 1),
+            nn.BatchNorm2d(4),
+            nn.ConvTranspose2d(4, 2, 3, 1, 1),
+        )
+
+    def forward(self, x):
+        return self.net(x)
+
+
+def test_the_affine_decoder_cnn_has_the_cnns_parameters_and_relus_only_in_the_encoder():
+    natural, affine = build_backbone("cnn"), build_backbone("cnn_affine")
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert count(natural) == count(affine) and 6.5e5 < count(affine) < 6.7e5
+    graph = trace(affine.eval(), torch.zeros(1, 3, 64, 64))
+    kinds = [n.op.kind for n in graph.nodes[1:]]
+    last_relu = max(i for i, k in enumerate(kinds) if k == "relu")
+    assert kinds.count("relu") == 5 and set(kinds[last_relu + 1 :]) == {"affine"}
+    assert affine(torch.zeros(2, 3, 64, 64)).shape == (2, 23, 64, 64)
+
+
+def test_ibp_is_textbook_interval_arithmetic():
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Linear(6, 8), nn.ReLU(), nn.Linear(8, 8), nn.ReLU(), nn.Linear(8, 3))
+    lower, upper = -torch.rand(6), torch.rand(6)
+    lo, hi = lower.double(), upper.double()
+    for layer in net:
+        if isinstance(layer, nn.ReLU):
+            lo, hi = lo.clamp_min(0), hi.clamp_min(0)
+            continue
+        W, b = layer.weight.double(), layer.bias.double()
+        lo, hi = (
+            W.clamp_min(0) @ lo + W.clamp_max(0) @ hi + b,
+            W.clamp_min(0) @ hi + W.clamp_max(0) @ lo + b,
+        )
+    got_lo, got_hi = output_bounds(net, Box(lower, upper), "ibp")
+    torch.testing.assert_close(got_lo.double(), lo, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(got_hi.double(), hi, atol=1e-5, rtol=1e-5)
+
+
+def test_a_differentiable_graph_gives_the_folded_graphs_bounds():
+    net = MixedNet(3)
+    x = torch.rand(3, 2, 8, 8)
+    coeff = torch.cat([x[:1], x[1:] - x[:1]])[None]
+    region = Region.affine(coeff, "simplex")
+    folded = propagate(trace(net, x[:1]), region)[0].bounds()
+    live = propagate(trace(net, x[:1], differentiable=True), region)[0].bounds()
+    for a, b in zip(folded, live):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+
+
+def test_random_hulls_are_the_studys_kinds(patches):
+    sampler = HullSampler(patches, seed=3)
+    images = torch.rand(40, 3, 64, 64)
+    V = sampler(images)
+    assert V.shape == (40, 1 + MAX_COPIES, 3, 64, 64)
+    assert torch.equal(V[:, 0], images) and V.min() >= 0 and V.max() <= 1
+    changed = (V[:, 1:] != V[:, :1]).any(2).flatten(2).sum(-1)  # pixels each copy changes
+    copies = (changed > 0).sum(1)
+    assert 1 <= copies.min() and copies.max() <= MAX_COPIES
+    local = changed.amax(1) < 64 * 64 // 4  # objects and blocks change a few pixels
+    assert local.any() and (~local).any()  # brightness and contrast change most of them
+    sampler.reseed(5)
+    first = sampler(images[:4])
+    sampler.reseed(5)
+    assert torch.equal(sampler(images[:4]), first)
+
+
+def test_the_bound_term_contains_sampled_heatmaps_and_bounds_the_loss(patches):
+    net = build_backbone("cnn_affine").eval()
+    torch.manual_seed(1)
+    images = torch.rand(3, 3, 64, 64)
+    V = HullSampler(patches, seed=1)(images)
+    lower, upper = hull_bounds(bound_graph(net), V, scale=0.5)
+    keypoints, weights = torch.rand(1, 23, 2) * 63, torch.ones(1, 23)
+    for b in range(3):
+        hull = ConvexHull(V[b, 0] + 0.5 * (V[b] - V[b, 0]))
+        lam = hull.sample(64, seed=b).float()
+        with torch.no_grad():
+            h = net(hull.image(lam))
+        assert (h >= lower[b] - 1e-4).all() and (h <= upper[b] + 1e-4).all()
+        worst = robust_heatmap_loss(lower[b : b + 1], upper[b : b + 1], keypoints, weights, 1.0)
+        each = [heatmap_loss(h[i : i + 1], keypoints, weights, 1.0) for i in range(len(h))]
+        assert worst >= max(each) - 1e-4
+    # Tight bounds: the term is the natural loss.
+    with torch.no_grad():
+        h = net(images[:1])
+    torch.testing.assert_close(
+        robust_heatmap_loss(h, h, keypoints, weights, 1.0),
+        heatmap_loss(h, keypoints, weights, 1.0),
+    )
+
+
+def test_a_gradient_step_on_the_bound_term_lowers_it():
+    net = SmallHeatmapNet().eval()
+    graph = bound_graph(net)
+    torch.manual_seed(2)
+    x = torch.rand(4, 3, 8, 8)
+    V = torch.stack([x, (x + 0.1 * torch.randn_like(x)).clamp(0, 1)], 1)
+    keypoints, weights = torch.rand(4, 2, 2) * 7, torch.ones(4, 2)
+
+    def term():
+        return robust_heatmap_loss(*hull_bounds(graph, V), keypoints, weights, 1.0)
+
+    before = term()
+    before.backward()
+    params = [p for p in net.parameters() if p.grad is not None]
+    assert len(params) == len(list(net.parameters()))  # batch norms' affine too
+    with torch.no_grad():
+        for p in params:
+            p -= 1e-3 * p.grad
+    assert term() < before
+
+
+def test_hull_scale_is_checked():
+    net = SmallHeatmapNet().eval()
+    with pytest.raises(ValueError, match="scale: expected a number in"):
+        hull_bounds(bound_graph(net), torch.zeros(1, 2, 3, 8, 8), scale=2.0)
+
+
+def test_bad_certified_config_is_named():
+    with pytest.raises(ValueError, match="certified_weight"):
+        TrainConfig(certified_weight=-1.0)
+    with pytest.raises(ValueError, match="certified_start"):
+        TrainConfig(certified_start=-1)
+    with pytest.raises(ValueError, match="certified_hulls"):
+        TrainConfig(certified_hulls=0)
+
+
+def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_path):
+    from kpstudy.certify import SeedImage, certify
+    from kpstudy.data import load_keypoint_set
+    from kpstudy.evaluate import evaluate
+
+    config = TrainConfig(
+        "cnn_affine",
+        epochs=2,
+        batch_size=4,
+        images=8,
+        seed=1,
+        certified_weight=0.5,
+        certified_hulls=2,
+        certified_start=0,
+        certified_ramp=1,
+    )
+    path = tmp_path / "cnn_affine.pt"
+    state = train(tiny_dataset, path, config, progress=False)
+    assert all(np.isfinite(row["bound_loss"]) for row in state["history"])
+    backbone, saved = load_checkpoint(path)
+    assert saved["config"]["certified_weight"] == 0.5
+    summary = evaluate(path, tiny_dataset, "test")[0]
+    assert len(summary) > 0
+    data = load_keypoint_set(tiny_dataset, "test", 64)
+    seed = SeedImage.from_keypoint_set(data, 0)
+    image = data.images[0]
+    vertices = np.stack([image, np.clip(image + 1.0, 0, 255), np.clip(image - 1.0, 0, 255)])
+    record = certify(backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=4)
+    assert record["status"] == "holds"
