@@ -8,7 +8,7 @@ PROFILE ?= quick
 SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1 libgbm1 libgl1-mesa-dri
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system venv test test-fast lint reproduce bench clean
+.PHONY: setup system venv test test-fast lint reproduce retrain-friendly bench clean
 
 setup: system $(STAMP)
 
@@ -43,6 +43,10 @@ lint: setup
 # The main job: everything that exists so far, at the chosen profile.
 reproduce: setup
 	$(PY) -m kpstudy reproduce --profile $(PROFILE)
+
+# The same, training the verification-friendly CNN from scratch instead of using the shipped one.
+retrain-friendly: setup
+	$(PY) -m kpstudy reproduce --profile $(PROFILE) --retrain-friendly
 
 bench: setup
 	$(PY) benchmarks/run_all.py

@@ -1,11 +1,14 @@
-"""Bound tightness layer by layer on the trained CNN: zonotope vs forward (vs IBP).
+"""Bound tightness layer by layer: zonotope vs forward (vs IBP), model beside model.
 
-For one hull of the study's perturbation sets (``--data``, ``python -m data_gen perturb``)
-around a seed image, :func:`kpstudy.verify.bound_profile` bounds every node of the
-backbone over the exact hull with each method and compares the bound width with the range
+For hulls of the study's perturbation sets (``--data``, ``python -m data_gen perturb``)
+around a seed image, :func:`kpstudy.verify.bound_profile` bounds every node of each
+backbone (``--checkpoint NAME=PATH …``, e.g. the natural CNN and the verification-friendly
+one) over the exact hull with each method and compares the bound width with the range
 reached by sampled hull images (ratio 1 = exact), and the ReLUs each method leaves
-unstable with those whose sign the samples see change. Prints one JSON line: per method,
-the seconds and, per ReLU and for the output, ``ratio_median``, ``unstable_bound`` and
+unstable with those whose sign the samples see change. Object and block hulls are
+profiled for every ``--m`` and overlap; every checkpoint sees the same hulls. Prints one
+JSON line: per run (checkpoint × hull) and method, the seconds, ``heatmap_ratio`` (the
+output's ratio) and, per ReLU and for the output, ``ratio_median``, ``unstable_bound`` and
 ``unstable_sampled``.
 """
 
@@ -26,13 +29,27 @@ from kpstudy.verify import ConvexHull, bound_profile
 COLUMNS = ("name", "ratio_median", "unstable_bound", "unstable_sampled")
 
 
+def _checkpoint(text: str) -> tuple[str, Path]:
+    name, _, path = text.rpartition("=")
+    return (name or Path(path).stem), Path(path)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--checkpoint", type=Path, required=True, help="python -m kpstudy train")
+    ap.add_argument(
+        "--checkpoint",
+        type=_checkpoint,
+        nargs="+",
+        required=True,
+        help="NAME=PATH or PATH (python -m kpstudy train), one or more",
+    )
     ap.add_argument("--data", type=Path, required=True, help="a dataset with perturbation sets")
     ap.add_argument("--kind", default="brightness", help="objects, blocks, brightness, contrast")
     ap.add_argument("--level", type=float, help="brightness or contrast level (default: the first)")
-    ap.add_argument("--m", type=int, default=2, help="objects and blocks: perturbed images")
+    ap.add_argument("--m", type=int, nargs="+", default=[2], help="objects and blocks: sizes")
+    ap.add_argument(
+        "--overlapping", choices=("no", "yes", "both"), default="no", help="objects and blocks"
+    )
     ap.add_argument("--seed-index", type=int, default=0, help="which seed image of the set")
     ap.add_argument("--methods", nargs="+", default=["ibp", "forward", "zonotope"])
     ap.add_argument("--samples", type=int, default=500)
@@ -43,24 +60,39 @@ def main(argv=None):
     image_id = sorted({r["image_id"] for r in rows})[args.seed_index]
     if args.kind in DEFAULT_LEVELS:
         level = args.level or min(r["level"] for r in rows if r["image_id"] == image_id)
-        V = hull_vertices(args.data, image_id, args.kind, level=level)
+        hulls = [
+            dict(
+                m=2, overlapping=None, V=hull_vertices(args.data, image_id, args.kind, level=level)
+            )
+        ]
     else:
         level = None
-        V = hull_vertices(args.data, image_id, args.kind, args.m, False)
-    net, _ = load_checkpoint(args.checkpoint)
-    net.eval()
-    x = normalise(np.stack([resize_to_input(v, net.input_size) for v in V]))
-    hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
-    out = {"kind": args.kind, "image_id": image_id, "level": level, "n": hull.n}
-    for method in args.methods:
-        start = time.perf_counter()
-        profile = bound_profile(net, hull, method=method, samples=args.samples)
-        keep = [r for r in profile if r["op"] == "ReLU"] + profile[-1:]
-        out[method] = {
-            "seconds": time.perf_counter() - start,
-            "contained": all(r["contained"] for r in profile),
-            "layers": [{k: r.get(k) for k in COLUMNS} for r in keep],
-        }
+        overlaps = {"no": [False], "yes": [True], "both": [False, True]}[args.overlapping]
+        hulls = [
+            dict(m=m, overlapping=o, V=hull_vertices(args.data, image_id, args.kind, m, o))
+            for o in overlaps
+            for m in args.m
+        ]
+    out = {"kind": args.kind, "image_id": image_id, "level": level, "runs": []}
+    for name, path in args.checkpoint:
+        net, _ = load_checkpoint(path)
+        net.eval()
+        for hull_args in hulls:
+            V = hull_args["V"]
+            x = normalise(np.stack([resize_to_input(v, net.input_size) for v in V]))
+            hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
+            run = {"checkpoint": name, "m": hull_args["m"], "overlapping": hull_args["overlapping"]}
+            for method in args.methods:
+                start = time.perf_counter()
+                profile = bound_profile(net, hull, method=method, samples=args.samples)
+                keep = [r for r in profile if r["op"] == "ReLU"] + profile[-1:]
+                run[method] = {
+                    "seconds": time.perf_counter() - start,
+                    "contained": all(r["contained"] for r in profile),
+                    "heatmap_ratio": profile[-1]["ratio_median"],
+                    "layers": [{k: r.get(k) for k in COLUMNS} for r in keep],
+                }
+            out["runs"].append(run)
     return emit("bound_profile", out)
 
 

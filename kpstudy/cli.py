@@ -21,6 +21,11 @@ def main(argv=None) -> int:
     rep.add_argument("--workers", type=int, help="local processes per campaign")
     rep.add_argument("--stages", nargs="+", help="data, train, notebooks, report (default all)")
     rep.add_argument("--scheduler", help="Dask scheduler address for the campaigns")
+    rep.add_argument(
+        "--retrain-friendly",
+        action="store_true",
+        help="train the verification-friendly CNN from scratch (default: the shipped one)",
+    )
 
     from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig
 
@@ -113,7 +118,13 @@ def main(argv=None) -> int:
                 timeout=args.timeout,
                 workers=args.workers,
             )
-            out = reproduce(prof, args.out, stages=args.stages or STAGES, scheduler=args.scheduler)
+            out = reproduce(
+                prof,
+                args.out,
+                stages=args.stages or STAGES,
+                scheduler=args.scheduler,
+                retrain_friendly=args.retrain_friendly,
+            )
             print(f"results written to {out}")
         elif args.command == "train":
             _train(args)

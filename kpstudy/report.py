@@ -184,12 +184,30 @@ def _summary(table: pd.DataFrame) -> list[str]:
     return lines
 
 
+def _per_model(read):
+    """``read(table)``, once per ``model`` (its lines prefixed by the model's name) when the
+    table has one."""
+
+    def readings(table):
+        if "model" not in table:
+            return read(table)
+        return [
+            f"`{model}`: {line}"
+            for model in sorted(table.model.unique())
+            for line in read(table[table.model == model])
+        ]
+
+    return readings
+
+
+@_per_model
 def _local(table):
     return campaign_readings(
         table, {"alpha": "α", "kappa": "κ", "m": "m", "overlapping": "overlapping"}
     )
 
 
+@_per_model
 def _global(table):
     lines = campaign_readings(table, {"alpha": "α", "kappa": "κ"})
     for kind in sorted(table.kind.unique()):

@@ -6,7 +6,11 @@ Stages, in order; each is skipped when its outputs are current:
    its test seed images (objects at the render's resolution, blocks at the ResNet-18
    input, brightness and contrast at the CNN input). Reused when its settings match.
 2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.train.train`,
-   which resumes an interrupted run and returns a finished one as it is).
+   which resumes an interrupted run and returns a finished one as it is), and the
+   verification-friendly CNN (:data:`FRIENDLY`: the affine-decoder CNN trained with the
+   bound term of :mod:`kpstudy.certified`). Its quick-profile checkpoint ships with
+   kpstudy (:data:`SHIPPED`) and is copied when it was made by the same recipe on the
+   same dataset; otherwise, or with ``retrain_friendly``, it is trained.
 3. **notebooks**: ``notebooks/NN_*.ipynb`` run by papermill with the profile's
    parameters into ``results/<profile>/notebooks/``. Each writes its tables (CSV and
    Markdown, the paper's numbers beside ours) under ``tables/`` and its figures under
@@ -33,6 +37,17 @@ from kpstudy.io import source_fingerprint, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
+#: The verification-friendly CNN's recipe (``TrainConfig`` fields beside the profile's
+#: seed): natural epochs first, then the bound term over hulls that grow to full size.
+FRIENDLY = dict(
+    backbone="cnn_affine",
+    epochs=20,
+    certified_weight=0.5,
+    certified_start=10,
+    certified_ramp=5,
+)
+#: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`.
+SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
 
 
 @dataclass(frozen=True)
@@ -160,8 +175,11 @@ def reproduce(
     stages=STAGES,
     scheduler: str | None = None,
     progress: bool = True,
+    retrain_friendly: bool = False,
 ) -> Path:
-    """Run ``stages`` of the profile and return its results folder ``out_root/<name>``."""
+    """Run ``stages`` of the profile and return its results folder ``out_root/<name>``
+    (``retrain_friendly``: train the verification-friendly CNN even where the shipped
+    checkpoint fits)."""
     prof = profile(prof) if isinstance(prof, str) else prof
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
@@ -176,7 +194,7 @@ def reproduce(
         if stage == "data":
             data(prof, out, progress=progress)
         elif stage == "train":
-            train_models(prof, out, progress=progress)
+            train_models(prof, out, progress=progress, retrain_friendly=retrain_friendly)
         elif stage == "notebooks":
             run_notebooks(prof, out, scheduler=scheduler, progress=progress)
         else:
@@ -237,20 +255,26 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
 
 def checkpoints(out: Path) -> dict[str, Path]:
     """Where the train stage writes each backbone's checkpoint."""
-    return {name: Path(out) / "models" / f"{name}.pt" for name in ("cnn", "resnet18")}
+    names = ("cnn", "cnn_affine", "resnet18")
+    return {name: Path(out) / "models" / f"{name}.pt" for name in names}
 
 
-def train_models(prof: Profile, out: Path, *, progress: bool = True) -> dict[str, Path]:
-    """Train (or resume, or reuse) the CNN and the ResNet-18 on ``out/data``."""
+def train_models(
+    prof: Profile, out: Path, *, progress: bool = True, retrain_friendly: bool = False
+) -> dict[str, Path]:
+    """Train (or resume, or reuse) the CNN, the verification-friendly CNN and the
+    ResNet-18 on ``out/data``."""
     import torch
 
     from data_gen.dataset import load_coco
+    from kpstudy.io import write_bytes_atomic
     from kpstudy.train import TrainConfig, train
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
     configs = {
         "cnn": TrainConfig("cnn", epochs=prof.cnn_epochs, images=prof.cnn_images, seed=prof.seed),
+        "cnn_affine": TrainConfig(**FRIENDLY, images=prof.cnn_images, seed=prof.seed),
         "resnet18": TrainConfig(
             "resnet18",
             epochs=prof.resnet_epochs,
@@ -261,12 +285,24 @@ def train_models(prof: Profile, out: Path, *, progress: bool = True) -> dict[str
         ),
     }
     device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    def made_by(file: Path, config: TrainConfig) -> bool:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+        return state["config"] == asdict(config) and state["dataset"]["config"] == dataset
+
     for name, config in configs.items():
         path = paths[name]
-        if path.is_file():  # another profile's or another dataset's model is stale
-            state = torch.load(path, map_location="cpu", weights_only=True)
-            if state["config"] != asdict(config) or state["dataset"]["config"] != dataset:
-                path.unlink()
+        if path.is_file() and not made_by(path, config):  # another profile's or dataset's
+            path.unlink()
+        if name == "cnn_affine" and retrain_friendly:
+            path.unlink(missing_ok=True)
+        elif (
+            name == "cnn_affine"
+            and not path.is_file()
+            and SHIPPED.is_file()
+            and made_by(SHIPPED, config)
+        ):
+            write_bytes_atomic(path, SHIPPED.read_bytes())
         train(out / "data", path, config, device=device, progress=progress)
     return paths
 
@@ -283,7 +319,7 @@ def run_notebooks(
     campaign = dict(workers=prof.workers, scheduler=scheduler)
     cnn_campaign = dict(
         data_dir=data_dir,
-        checkpoint=models["cnn"],
+        checkpoints={name: models[name] for name in ("cnn", "cnn_affine")},
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound_timeout=prof.pose_bound_timeout,

@@ -16,7 +16,8 @@ its axes and reports, per cell:
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
-  ``pb_holds``, ``pb_verified_rate`` (same denominator), ``pb_time_mean``,
+  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_verified_rate`` (same
+  denominator), ``pb_time_mean``,
   ``pb_nonlinear_outside`` (``holds`` whose PnP re-solved at region corners leaves Ξ: the
   linearisation's error, which the allocation method shares) and ``pb_only`` /
   ``allocation_only``: seeds inside Ξ that one method verifies and the other does not.
@@ -154,6 +155,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         if "pb_status" in cell:
             pb = cell["pb_status"] == "holds"
             row["pb_holds"] = int(pb.sum())
+            row["pb_violated"] = int((cell["pb_status"] == "violated").sum())
+            row["pb_unknown"] = int((cell["pb_status"] == "unknown").sum())
             row["pb_verified_rate"] = (
                 float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
             )
@@ -182,6 +185,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     if "pb_status" in records:
         columns += [
             "pb_holds",
+            "pb_violated",
+            "pb_unknown",
             "pb_verified_rate",
             "pb_time_mean",
             "pb_nonlinear_outside",
@@ -213,9 +218,15 @@ def t_prob(table: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def _by_model(records: pd.DataFrame, by: list[str]) -> list[str]:
+    """``by``, led by ``model`` when the records come from several backbones."""
+    return ["model", *by] if "model" in records else by
+
+
 def t_local(records: pd.DataFrame) -> pd.DataFrame:
-    """T-local (paper Tables 3–4): object occlusions by m × overlapping × κ × α."""
-    by = ["m", "overlapping", "kappa", "alpha"]
+    """T-local (paper Tables 3–4): object occlusions by m × overlapping × κ × α (and by
+    ``model`` when the records have one)."""
+    by = _by_model(records, ["m", "overlapping", "kappa", "alpha"])
     out = summarise(_kind(records, ("objects",)), by)
     return _with_paper(
         out, PAPER_T_LOCAL, lambda r: (int(r.m), bool(r.overlapping), r.kappa, r.alpha)
@@ -223,13 +234,15 @@ def t_local(records: pd.DataFrame) -> pd.DataFrame:
 
 
 def t_global(records: pd.DataFrame) -> pd.DataFrame:
-    """T-global (paper Tables 5–6): contrast c and brightness b by level × κ × α, with the
-    mean clipped-pixel fraction of each cell's hulls."""
+    """T-global (paper Tables 5–6): contrast c and brightness b by level × κ × α (and by
+    ``model`` when the records have one), with the mean clipped-pixel fraction of each
+    cell's hulls."""
     records = _kind(records, ("contrast", "brightness"))
-    out = summarise(records, ["kind", "level", "kappa", "alpha"])
+    by = _by_model(records, ["kind", "level", "kappa", "alpha"])
+    out = summarise(records, by)
     if "clipped_fraction" in records:
-        clipped = records.groupby(["kind", "level", "kappa", "alpha"])["clipped_fraction"].mean()
-        out.insert(4, "clipped_fraction", clipped.to_numpy())
+        clipped = records.groupby(by, sort=True, dropna=False)["clipped_fraction"].mean()
+        out.insert(len(by), "clipped_fraction", clipped.to_numpy())
     return _with_paper(out, PAPER_T_GLOBAL, lambda r: (r.kind, _level(r.level), r.kappa, r.alpha))
 
 
