@@ -1,7 +1,8 @@
 """Bound tightness layer by layer: zonotope vs forward (vs IBP), model beside model.
 
 For hulls of the study's perturbation sets (``--data``, ``python -m data_gen perturb``)
-around a seed image, :func:`kpstudy.verify.bound_profile` bounds every node of each
+around a seed image (object and block hulls: the first from ``--seed-index`` with ``m``
+such images), :func:`kpstudy.verify.bound_profile` bounds every node of each
 backbone (``--checkpoint NAME=PATH …``, e.g. the natural CNN and the verification-friendly
 one) over the exact hull with each method and compares the bound width with the range
 reached by sampled hull images (ratio 1 = exact), and the ReLUs each method leaves
@@ -57,23 +58,26 @@ def main(argv=None):
     from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
 
     rows = load_perturbations(args.data, args.kind)["images"]
-    image_id = sorted({r["image_id"] for r in rows})[args.seed_index]
+    ids = sorted({r["image_id"] for r in rows})[args.seed_index :]
     if args.kind in DEFAULT_LEVELS:
+        image_id = ids[0]
         level = args.level or min(r["level"] for r in rows if r["image_id"] == image_id)
-        hulls = [
-            dict(
-                m=2, overlapping=None, V=hull_vertices(args.data, image_id, args.kind, level=level)
-            )
-        ]
+        V = hull_vertices(args.data, image_id, args.kind, level=level)
+        hulls = [dict(image_id=image_id, m=2, overlapping=None, V=V)]
     else:
         level = None
         overlaps = {"no": [False], "yes": [True], "both": [False, True]}[args.overlapping]
-        hulls = [
-            dict(m=m, overlapping=o, V=hull_vertices(args.data, image_id, args.kind, m, o))
-            for o in overlaps
-            for m in args.m
-        ]
-    out = {"kind": args.kind, "image_id": image_id, "level": level, "runs": []}
+        hulls = []
+        for o in overlaps:
+            count = {
+                i: sum(r["image_id"] == i and r["overlapping"] == o for r in rows) for i in ids
+            }
+            for m in args.m:  # the first seed image (from --seed-index) with m such images
+                image_id = next((i for i in ids if count[i] >= m), None)
+                if image_id is not None:
+                    V = hull_vertices(args.data, image_id, args.kind, m, o)
+                    hulls.append(dict(image_id=image_id, m=m, overlapping=o, V=V))
+    out = {"kind": args.kind, "level": level, "runs": []}
     for name, path in args.checkpoint:
         net, _ = load_checkpoint(path)
         net.eval()
@@ -81,7 +85,10 @@ def main(argv=None):
             V = hull_args["V"]
             x = normalise(np.stack([resize_to_input(v, net.input_size) for v in V]))
             hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
-            run = {"checkpoint": name, "m": hull_args["m"], "overlapping": hull_args["overlapping"]}
+            run = {
+                "checkpoint": name,
+                **{k: hull_args[k] for k in ("image_id", "m", "overlapping")},
+            }
             for method in args.methods:
                 start = time.perf_counter()
                 profile = bound_profile(net, hull, method=method, samples=args.samples)

@@ -17,6 +17,8 @@ is what the proxy's "the keypoint's cell wins" needs.
 
 from __future__ import annotations
 
+import contextlib
+
 import cv2
 import numpy as np
 import torch
@@ -134,6 +136,50 @@ class HullSampler:
             region * (1 - alpha) + (np.clip(colour, 0, 255).transpose(2, 0, 1) / 255.0) * alpha
         )
         return out
+
+
+class BatchStatistics:
+    """Batch norms that normalise the bound pass by the natural pass's batch statistics.
+
+    Bounds are computed with every batch norm a fixed affine map (eval mode). With the
+    running statistics, the bound term would train another network than the natural term
+    does (train mode, the batch's statistics); measured on the affine-decoder CNN after
+    four epochs of the term: validation PCK@2 0.50 in eval mode against 0.77 with batch
+    statistics, the same weights. So, as Shi et al. (2021) do, the statistics of each
+    batch's natural pass (recorded by forward hooks, detached) stand in for the running
+    ones while the bounds are computed (:meth:`frozen`); the running statistics, which
+    the verified network uses, are the usual average of those.
+    """
+
+    def __init__(self, backbone: torch.nn.Module) -> None:
+        self.backbone = backbone
+        self.norms = [m for m in backbone.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+        self.batch: dict[torch.nn.Module, tuple] = {}
+        for m in self.norms:
+            m.register_forward_hook(self._record)
+
+    def _record(self, m, inputs, output) -> None:
+        if m.training:
+            x = inputs[0].detach()
+            self.batch[m] = (x.mean((0, 2, 3)), x.var((0, 2, 3), unbiased=False))
+
+    @contextlib.contextmanager
+    def frozen(self):
+        """Eval mode with the last natural pass's batch statistics; restores both."""
+        missing = [m for m in self.norms if m not in self.batch]
+        if missing:
+            raise RuntimeError("backbone: run a natural pass in train mode first")
+        mode = self.backbone.training
+        running = [(m.running_mean, m.running_var) for m in self.norms]
+        for m in self.norms:
+            m.running_mean, m.running_var = self.batch[m]
+        self.backbone.eval()
+        try:
+            yield
+        finally:
+            self.backbone.train(mode)
+            for m, (mean, var) in zip(self.norms, running):
+                m.running_mean, m.running_var = mean, var
 
 
 def bound_graph(backbone: torch.nn.Module) -> Graph:

@@ -65,6 +65,12 @@ def main(argv=None) -> int:
         help="natural epochs before the term",
     )
     cert.add_argument(
+        "--certified-scale",
+        type=float,
+        default=default.certified_scale,
+        help="the hulls' final size, a fraction of the full hull (SABR-style sub-hulls)",
+    )
+    cert.add_argument(
         "--certified-ramp",
         type=int,
         default=default.certified_ramp,

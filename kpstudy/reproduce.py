@@ -27,13 +27,14 @@ GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
-from kpstudy.io import source_fingerprint, write_text_atomic
+from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
@@ -42,9 +43,10 @@ STAGES = ("data", "train", "notebooks", "report")
 FRIENDLY = dict(
     backbone="cnn_affine",
     epochs=20,
-    certified_weight=0.5,
-    certified_start=10,
-    certified_ramp=5,
+    certified_weight=2.0,
+    certified_scale=0.05,
+    certified_start=8,
+    certified_ramp=4,
 )
 #: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`.
 SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
@@ -267,7 +269,6 @@ def train_models(
     import torch
 
     from data_gen.dataset import load_coco
-    from kpstudy.io import write_bytes_atomic
     from kpstudy.train import TrainConfig, train
 
     paths = checkpoints(out)
@@ -305,6 +306,46 @@ def train_models(
             write_bytes_atomic(path, SHIPPED.read_bytes())
         train(out / "data", path, config, device=device, progress=progress)
     return paths
+
+
+def probe_input():
+    """A fixed input ``(1, 3, 64, 64)`` float32 in [0, 1], the same on every machine, whose
+    heatmaps the shipped checkpoint's card records (a load check)."""
+    import torch
+
+    return torch.linspace(0.0, 1.0, 3 * 64 * 64).reshape(1, 3, 64, 64).flip(-1)
+
+
+def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
+    """Write the verification-friendly checkpoint ``checkpoint`` (trained by
+    :data:`FRIENDLY` on ``data_dir``) to ``target`` without its optimiser state (the
+    checkpoint is finished), and its card ``target.json``: the recipe, the test-split
+    metrics of :func:`kpstudy.evaluate.evaluate` and the heatmaps' sum and absolute sum
+    on :func:`probe_input`. Returns the card."""
+    import torch
+
+    from kpstudy.evaluate import evaluate
+    from kpstudy.train import load_checkpoint
+
+    backbone, state = load_checkpoint(checkpoint)
+    if state["epoch"] < state["config"]["epochs"]:
+        raise ValueError(f"checkpoint: {checkpoint} is not finished")
+    state = {k: v for k, v in state.items() if k not in ("optimizer", "scheduler")}
+    state["dataset"] = dict(state["dataset"], path=None)  # no path of this machine
+    summary, _ = evaluate(checkpoint, data_dir, "test")
+    with torch.no_grad():
+        h = backbone(probe_input()).double()
+    card = {
+        "recipe": state["config"],
+        "dataset": state["dataset"],
+        "test": summary.to_dict(orient="records"),
+        "probe": {"sum": float(h.sum()), "abs_sum": float(h.abs().sum())},
+    }
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_bytes_atomic(target, buffer.getvalue())
+    write_text_atomic(target.with_suffix(".json"), json.dumps(card, indent=1) + "\n")
+    return card
 
 
 def run_notebooks(

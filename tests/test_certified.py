@@ -10,6 +10,7 @@ from torch import nn
 
 from kpstudy.certified import (
     MAX_COPIES,
+    BatchStatistics,
     HullSampler,
     bound_graph,
     hull_bounds,
@@ -156,6 +157,27 @@ def test_a_gradient_step_on_the_bound_term_lowers_it():
     assert term() < before
 
 
+def test_the_bound_pass_normalises_by_the_natural_passs_batch_statistics():
+    net = SmallHeatmapNet().train()
+    stats = BatchStatistics(net)
+    with pytest.raises(RuntimeError, match="natural pass"):
+        with stats.frozen():
+            pass
+    x = torch.rand(6, 3, 8, 8)
+    natural = net(x)
+    running = [m.running_mean.clone() for m in stats.norms]
+    graph = bound_graph(net)
+    with stats.frozen():
+        assert not net.training
+        lower, upper = hull_bounds(graph, torch.stack([x, x], 1))
+        same = net(x)
+    torch.testing.assert_close(same, natural)
+    torch.testing.assert_close(lower, natural, atol=1e-5, rtol=1e-5)
+    assert net.training
+    for m, before in zip(stats.norms, running):
+        assert torch.equal(m.running_mean, before)
+
+
 def test_hull_scale_is_checked():
     net = SmallHeatmapNet().eval()
     with pytest.raises(ValueError, match="scale: expected a number in"):
@@ -169,6 +191,8 @@ def test_bad_certified_config_is_named():
         TrainConfig(certified_start=-1)
     with pytest.raises(ValueError, match="certified_hulls"):
         TrainConfig(certified_hulls=0)
+    with pytest.raises(ValueError, match=r"certified_scale: expected a number in \(0, 1\]"):
+        TrainConfig(certified_scale=0.0)
 
 
 def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_path):
@@ -186,6 +210,7 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
         certified_hulls=2,
         certified_start=0,
         certified_ramp=1,
+        certified_scale=0.5,
     )
     path = tmp_path / "cnn_affine.pt"
     state = train(tiny_dataset, path, config, progress=False)
@@ -200,3 +225,50 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
     vertices = np.stack([image, np.clip(image + 1.0, 0, 255), np.clip(image - 1.0, 0, 255)])
     record = certify(backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=4)
     assert record["status"] == "holds"
+
+
+def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
+    from kpstudy.train import _backward
+
+    w = torch.tensor([1.0, 2.0], requires_grad=True)
+    natural = (w**2).sum()  # gradient (2, 4)
+    bound = 1e6 * w[0]  # gradient (1e6, 0): far larger
+    _backward(natural, bound, 0.5, [w])
+    share = 0.5 * torch.tensor([2.0, 4.0]).norm() / 1e6
+    torch.testing.assert_close(w.grad, torch.tensor([2.0 + share * 1e6, 4.0]))
+    w.grad = None
+    _backward((w**2).sum(), None, 0.5, [w])
+    torch.testing.assert_close(w.grad, torch.tensor([2.0, 4.0]))
+
+
+def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
+    import json
+
+    from kpstudy.reproduce import FRIENDLY, SHIPPED, probe_input
+
+    backbone, state = load_checkpoint(SHIPPED)
+    card = json.loads(SHIPPED.with_suffix(".json").read_text())
+    assert {k: state["config"][k] for k in FRIENDLY} == FRIENDLY
+    assert card["recipe"] == state["config"] and "optimizer" not in state
+    with torch.no_grad():
+        h = backbone(probe_input()).double()
+    assert h.sum().item() == pytest.approx(card["probe"]["sum"], rel=1e-5, abs=1e-3)
+    assert h.abs().sum().item() == pytest.approx(card["probe"]["abs_sum"], rel=1e-5)
+    argmax = next(row for row in card["test"] if row["head"] == "argmax")
+    assert argmax["pck@2"] >= 0.95  # the accuracy it was shipped for
+
+
+def test_ship_friendly_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):
+    import json
+
+    from kpstudy.reproduce import ship_friendly
+
+    config = TrainConfig("cnn_affine", epochs=1, batch_size=4, images=4, seed=2)
+    path = tmp_path / "trained.pt"
+    train(tiny_dataset, path, config, progress=False)
+    target = tmp_path / "shipped.pt"
+    card = ship_friendly(path, tiny_dataset, target)
+    state = torch.load(target, weights_only=True)
+    assert "optimizer" not in state and state["dataset"]["path"] is None
+    assert json.loads(target.with_suffix(".json").read_text()) == card
+    assert train(tiny_dataset, target, config, progress=False)["epoch"] == 1  # finished
