@@ -71,7 +71,11 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     assert records.pb_status.isin(["holds", "violated", "unknown"]).all()
     assert "Pose-bound method" in (run / "REPORT.md").read_text()
     glob = pd.read_csv(run / "tables" / "t_global.csv")
-    assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 5 * 4
+    # Both CNNs, row by row: the paper's and the verification-friendly one.
+    assert set(local.model) == set(glob.model) == {"cnn", "cnn_affine"}
+    assert set(records.model) == {"cnn", "cnn_affine"}
+    assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 2 * 5 * 4
+    assert "`cnn_affine`: " in (run / "REPORT.md").read_text()
     assert glob.paper_time_mean.notna().all() and (glob.clipped_fraction >= 0).all()
     resnet = pd.read_csv(run / "tables" / "t_resnet.csv")
     assert set(resnet.overlapping) == {False, True} and (resnet.alpha == 1.5).all()
