@@ -39,7 +39,8 @@ from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
 #: The verification-friendly CNN's recipe (``TrainConfig`` fields beside the profile's
-#: seed): natural epochs first, then the bound term over hulls that grow to full size.
+#: seed): natural epochs first, then the bound term over sub-hulls that grow to 5 % of
+#: the hulls' size (docs/findings.md says how it was chosen).
 FRIENDLY = dict(
     backbone="cnn_affine",
     epochs=20,

@@ -16,9 +16,9 @@ Its gradient is rescaled to ``certified_weight`` times the natural loss's gradie
 The term starts after ``certified_start`` natural epochs and its hulls grow from the
 image itself to ``certified_scale`` × their full size over ``certified_ramp`` epochs,
 quadratically in time (the warm-up of certified training: slow while the bounds are
-loosest). A scale below 1 bounds sub-hulls around the
-image, as SABR (Müller et al. 2023) bounds small boxes: a weaker term that costs less
-accuracy and, measured here, still tightens the bounds over the whole hulls.
+loosest). A scale below 1 bounds sub-hulls around the image, as SABR (Müller et al.
+2023) bounds small boxes: a weaker term that costs less accuracy and, measured here,
+still tightens the bounds over the whole hulls.
 
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
