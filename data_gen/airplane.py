@@ -55,6 +55,14 @@ DEFAULT_RGBA = (190, 192, 196, 255)
 #: Largest distance, metres, of a loaded keypoint from the mesh surface.
 MAX_KEYPOINT_DISTANCE = 0.25
 
+#: Smallest extent of a loaded airplane's keypoints (their bounding box's longest side),
+#: a fraction of the mesh's: the named keypoints run from nose to tail and tip to tip.
+MIN_KEYPOINT_SPAN = 0.25
+
+#: Largest collinearity of the keypoints seen from above: the smaller singular value of
+#: their centred (x, y) must exceed this fraction of the larger (PnP needs 2-D images).
+MIN_KEYPOINT_SPREAD_RATIO = 0.01
+
 _INSET = 0.05  # keypoint anchors sit this far inside an edge, metres
 
 
@@ -950,9 +958,11 @@ def load_airplane(mesh_path, keypoints_json) -> Airplane:
     FileNotFoundError
         A file does not exist.
     ValueError
-        The mesh cannot be loaded or is empty, or the keypoints are malformed (missing,
-        extra or duplicate names, coordinates that are not three finite numbers, a
-        keypoint farther than ``MAX_KEYPOINT_DISTANCE`` from the surface).
+        The mesh cannot be loaded, is empty or flat (no convex hull with volume), or the
+        keypoints are malformed (missing, extra or duplicate names, coordinates that are
+        not three finite numbers, a keypoint farther than ``MAX_KEYPOINT_DISTANCE`` from
+        the surface, keypoints that do not span the airplane or are collinear seen from
+        above, a ``ground_z`` away from the mesh's lowest point).
     """
     mesh_path, keypoints_json = Path(mesh_path), Path(keypoints_json)
     for arg, path in (("mesh_path", mesh_path), ("keypoints_json", keypoints_json)):
@@ -966,6 +976,7 @@ def load_airplane(mesh_path, keypoints_json) -> Airplane:
         raise ValueError(f"mesh_path: expected a triangle mesh with faces in '{mesh_path}'")
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError(f"mesh_path: expected finite vertex coordinates in '{mesh_path}'")
+    _check_solid(mesh, mesh_path)
     mesh = _colored(mesh)
 
     name, keypoints, ground_z = _read_keypoints(keypoints_json)
@@ -977,10 +988,65 @@ def load_airplane(mesh_path, keypoints_json) -> Airplane:
             f"keypoints_json: expected keypoints within {MAX_KEYPOINT_DISTANCE} m of the "
             f"surface of '{mesh_path}', got {listing}"
         )
+    _check_keypoint_extent(keypoints, mesh, keypoints_json)
     if ground_z is None:
         ground_z = float(mesh.bounds[0, 2])
+    _check_ground(ground_z, mesh, keypoints_json)
     keypoints.setflags(write=False)
     return Airplane(name or mesh_path.stem, mesh, keypoints, KEYPOINT_NAMES, ground_z)
+
+
+def _check_keypoint_extent(keypoints: np.ndarray, mesh: trimesh.Trimesh, path: Path) -> None:
+    """A ValueError unless the keypoints (23, 3) span the airplane: their extent at least
+    ``MIN_KEYPOINT_SPAN`` of the mesh's, and not collinear seen from above."""
+    span = float(np.ptp(keypoints, axis=0).max())
+    size = float(np.ptp(mesh.vertices, axis=0).max())
+    if not span >= MIN_KEYPOINT_SPAN * size:
+        raise ValueError(
+            f"keypoints_json: expected keypoints that span the airplane (an extent of at "
+            f"least {MIN_KEYPOINT_SPAN:.0%} of the mesh's {size:.3g} m), got {span:.3g} m "
+            f"in '{path}'"
+        )
+    xy = keypoints[:, :2] - keypoints[:, :2].mean(0)
+    s = np.linalg.svd(xy, compute_uv=False)
+    if not s[1] > MIN_KEYPOINT_SPREAD_RATIO * s[0]:
+        raise ValueError(
+            f"keypoints_json: expected keypoints that are not collinear seen from above "
+            f"(x, y spread ratio {s[1] / s[0]:.2g} <= {MIN_KEYPOINT_SPREAD_RATIO}) in '{path}'"
+        )
+
+
+def _check_ground(ground_z: float, mesh: trimesh.Trimesh, path: Path) -> None:
+    """A ValueError unless the ground plane ``z = ground_z`` touches the mesh from below:
+    at most ``MAX_KEYPOINT_DISTANCE`` above its lowest point (the airplane would sink into
+    it) and at most the mesh's height (or a tenth of its size) below it (it would float;
+    the cameras aim at the ground, so the airplane leaves the picture)."""
+    lowest = float(mesh.bounds[0, 2])
+    extent = np.ptp(mesh.vertices, axis=0)
+    gap = lowest - ground_z
+    most = max(float(extent[2]), 0.1 * float(extent.max()))
+    if not -MAX_KEYPOINT_DISTANCE <= gap <= most:
+        raise ValueError(
+            f"keypoints_json: expected 'ground_z' between {lowest - most:.4g} and "
+            f"{lowest + MAX_KEYPOINT_DISTANCE:.4g} m (the mesh's lowest point is at "
+            f"z = {lowest:.4g} m), got {ground_z:.4g} in '{path}'"
+        )
+
+
+def _check_solid(mesh: trimesh.Trimesh, mesh_path: Path) -> None:
+    """A ValueError naming ``mesh_path`` unless the mesh spans three dimensions: the scene
+    sampler frames the airplane by its convex hull, which a flat or single-triangle mesh
+    (every vertex in one plane) does not have."""
+    try:
+        volume = float(mesh.convex_hull.volume)
+    except Exception:  # scipy's QhullError for coplanar or too few points
+        volume = 0.0
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    if not volume > 1e-9 * extent**3:
+        raise ValueError(
+            f"mesh_path: expected a mesh that spans three dimensions (a convex hull with "
+            f"volume), but the {len(mesh.vertices)} vertices of '{mesh_path}' lie in a plane"
+        )
 
 
 def _read_keypoints(path: Path) -> tuple[str | None, np.ndarray, float | None]:

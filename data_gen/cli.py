@@ -1,7 +1,8 @@
 """Command line: ``python -m data_gen dataset|perturb|gallery …``.
 
 Bad arguments print ``data_gen <command>: error: …`` naming the argument and exit
-with status 2, before anything is written.
+with status 2, before anything is written. Ctrl-C exits with status 130 and one line
+(an interrupted ``dataset`` or ``perturb`` resumes when run again).
 """
 
 from __future__ import annotations
@@ -96,6 +97,9 @@ def main(argv=None) -> int:
         PermissionError,
     ) as exc:
         parser.exit(2, f"data_gen {args.command}: error: {exc}\n")
+    except KeyboardInterrupt:  # Ctrl-C: one line and 128 + SIGINT, no traceback
+        print(f"data_gen {args.command}: interrupted", file=sys.stderr, flush=True)
+        return 130
     return 0
 
 

@@ -22,11 +22,13 @@ not depend on the number of workers, and an interrupted run resumes where it sto
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import multiprocessing
 import os
 import re
+import signal
 import time
 from pathlib import Path
 
@@ -125,6 +127,37 @@ def render_record(
 _worker: dict = {}
 
 
+def _init_pool_worker(config: dict, threads: int | None = None) -> None:
+    # Ctrl-C reaches the whole process group: the parent alone answers it (and ends the
+    # pool), the workers print no tracebacks of their own. They were born with SIGINT
+    # blocked (see _sigint_held): ignore it from now on, then lift the block.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _init_worker(config, threads)
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Hold Ctrl-C (SIGINT) back while worker processes start.
+
+    Processes started inside the block are born with SIGINT blocked, so a Ctrl-C while
+    they import cannot print their tracebacks; this process gets the signal (a
+    ``KeyboardInterrupt``) when the block ends, none is lost.
+    """
+    if not hasattr(signal, "pthread_sigmask"):  # Windows
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # started later, it would unblock SIGINT itself
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 def _init_worker(config: dict, threads: int | None = None) -> None:
     if threads is not None:  # one rasteriser thread per worker process: no oversubscription
         os.environ["LP_NUM_THREADS"] = str(threads)
@@ -196,6 +229,7 @@ def generate_dataset(
         raise ValueError("mesh, keypoints_json: expected both (a user's airplane) or neither")
     if not 1.0 <= hfov <= 120.0:
         raise ValueError(f"hfov: expected a field of view in [1, 120] degrees, got {hfov}")
+    seed = check_seed(seed)
     width, height = parse_size(size)
     out = check_output_dir(out, overwrite)
     config = {
@@ -214,17 +248,19 @@ def generate_dataset(
         done = {int(p.stem) for p in (staging / "records").glob("*.json")}
         todo = [(i, str(staging)) for i in range(n) if i not in done]
         bar = tqdm(total=n, initial=len(done), desc="rendering", unit="img", disable=not progress)
-        if workers == 1 or len(todo) <= 1:
-            _init_worker(config)
-            for job in todo:
-                _make(job)
-                bar.update()
-        else:
-            context = multiprocessing.get_context("spawn")
-            with context.Pool(workers, _init_worker, (config, 1)) as pool:
-                for _ in pool.imap_unordered(_make, todo, chunksize=4):
+        with bar:  # closed (its line ended) before an error or Ctrl-C is reported
+            if workers == 1 or len(todo) <= 1:
+                _init_worker(config)
+                for job in todo:
+                    _make(job)
                     bar.update()
-        bar.close()
+            else:
+                context = multiprocessing.get_context("spawn")
+                with _sigint_held():
+                    pool = context.Pool(workers, _init_pool_worker, (config, 1))
+                with pool:
+                    for _ in pool.imap_unordered(_make, todo, chunksize=4):
+                        bar.update()
         records = [
             json.loads((staging / "records" / f"{i:06d}.json").read_text()) for i in range(n)
         ]
@@ -295,8 +331,35 @@ def write_png(path, picture: np.ndarray) -> None:
 
 
 def load_coco(data_dir) -> dict:
-    """The dataset's COCO dictionary; FileNotFoundError naming ``data_dir`` if absent."""
+    """The dataset's COCO dictionary; FileNotFoundError naming ``data_dir`` if absent,
+    ValueError naming the file if it is not a COCO dataset (not JSON, truncated, or
+    without its ``images``, ``annotations`` and ``categories`` lists)."""
     path = Path(data_dir) / "annotations.json"
     if not path.is_file():
         raise FileNotFoundError(f"data_dir: no dataset at {data_dir} (expected {path})")
-    return json.loads(path.read_text())
+    coco = read_json(path, "data_dir")
+    lists = ("images", "annotations", "categories")
+    if not isinstance(coco, dict) or any(not isinstance(coco.get(k), list) for k in lists):
+        raise ValueError(
+            f"data_dir: expected a COCO dataset with {', '.join(lists)} lists in {path}"
+        )
+    return coco
+
+
+def read_json(path, name: str):
+    """The JSON document in ``path``; a ValueError naming ``name`` and the file when it is
+    not JSON (corrupt, truncated) or not UTF-8."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(
+            f"{name}: {path} is not valid JSON (corrupt or truncated?): {exc}"
+        ) from None
+
+
+def check_seed(seed, name: str = "seed") -> int:
+    """``seed`` as an int; a ValueError naming ``name`` unless it is a non-negative
+    integer (numpy's seed sequences take no negative entropy)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"{name}: expected a non-negative integer, got {seed!r}")
+    return int(seed)

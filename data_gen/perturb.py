@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from data_gen.dataset import load_coco, read_image, write_png
+from data_gen.dataset import check_seed, load_coco, read_image, read_json, write_png
 from data_gen.occluders import occluder_catalog
 from data_gen.patches import PatchRenderer, paste, patch_light
 from data_gen.scene import SceneParams
@@ -259,6 +259,7 @@ def make_perturbations(
     """
     if kind not in KINDS:
         raise ValueError(f"kind: unknown perturbation {kind!r}; expected one of {', '.join(KINDS)}")
+    seed = check_seed(seed)
     data_dir = Path(data_dir)
     coco = load_coco(data_dir)
     ids = seed_images(coco, seeds, seed)
@@ -308,7 +309,7 @@ def load_perturbations(data_dir, kind: str) -> dict:
         raise FileNotFoundError(
             f"kind: no {kind} perturbations in {data_dir} (run `python -m data_gen perturb`)"
         )
-    return json.loads(path.read_text())
+    return read_json(path, "kind")
 
 
 def hull_vertices(

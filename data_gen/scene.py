@@ -349,13 +349,16 @@ def keypoint_visibility(
     A z-buffer test at the keypoint's pixel: 2 = visible (inside the image and nothing
     drawn there is more than ``tol`` metres in front of the keypoint: the pixel shows
     the keypoint's own surface, or, at a thin edge that covers less than the pixel's
-    centre, the ground behind it); 1 = inside but hidden; 0 = outside.
+    centre, the ground behind it); 1 = inside but hidden; 0 = outside, or behind the
+    camera (depth ≤ 0, whose projection is a mirror image).
     """
     x = keypoints @ R.T + t
-    uv = x[:, :2] / x[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = x[:, :2] / x[:, 2:] @ K[:2, :2].T + K[:2, 2]
     h, w = frame.depth.shape
-    col, row = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    front = (x[:, 2] > 0) & np.isfinite(uv).all(1)
+    col, row = (np.rint(np.where(front, c, -1)).astype(int) for c in uv.T)
+    inside = front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
     flags = np.zeros(len(keypoints), int)
     c, r = col[inside], row[inside]
     seen = frame.depth[r, c] >= x[inside, 2] - tol

@@ -1,5 +1,11 @@
+"""``python -m kpstudy``: see :mod:`kpstudy.cli`."""
+
 import sys
 
-from kpstudy.cli import main
+try:
+    from kpstudy.cli import main
 
-sys.exit(main())
+    sys.exit(main())
+except KeyboardInterrupt:  # Ctrl-C before main() took over (while importing)
+    print("kpstudy: interrupted", file=sys.stderr)
+    sys.exit(130)

@@ -8,14 +8,34 @@ transaction: a crash or Ctrl-C loses at most the instances still running, and a 
 computes only what is missing. Instances run in the calling process (default,
 ``workers=1``), in ``workers`` local processes or on a Dask cluster
 (``scheduler='tcp://…'``); each worker loads the checkpoint and the dataset once.
+
+Reliability:
+
+* A store records what made it (:func:`provenance`: the checkpoint's bytes, the dataset's
+  annotations and perturbation sets, the other settings, the code) and refuses, with a
+  one-line ``ValueError`` naming ``store``, a campaign of another provenance: records of
+  another model, dataset, settings or code never mix. The file is created with the first
+  record, so that refused arguments leave nothing behind.
+* An instance that raises (a seed that cannot be certified, …) is stored with status
+  ``'error'`` and its message; the campaign goes on.
+* Local worker processes die with the campaign: they exit when their parent does
+  (``PR_SET_PDEATHSIG`` on Linux, and a thread watching the parent's pid), and SIGTERM
+  to the campaign's process stops them before it exits (status 143).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import hashlib
 import json
 import os
+import signal
 import sqlite3
+import sys
+import tempfile
+import threading
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -28,7 +48,15 @@ from tqdm.auto import tqdm
 
 from kpstudy.io import source_fingerprint
 
-__all__ = ["Instance", "ResultStore", "Settings", "grid", "run_campaign", "store_path"]
+__all__ = [
+    "Instance",
+    "ResultStore",
+    "Settings",
+    "grid",
+    "provenance",
+    "run_campaign",
+    "store_path",
+]
 
 GLOBAL_KINDS = ("brightness", "contrast")
 LOCAL_KINDS = ("objects", "blocks")
@@ -162,26 +190,114 @@ def grid(
 
 
 class ResultStore:
-    """Records keyed by :attr:`Instance.key` in one SQLite file (one transaction each)."""
+    """Records keyed by :attr:`Instance.key` in one SQLite file (one transaction each),
+    with the :func:`provenance` of the campaign that made them.
 
-    def __init__(self, path) -> None:
+    Parameters
+    ----------
+    path : path
+        The SQLite file. A missing file is created with the first :meth:`put` (its
+        folders too); until then nothing is written.
+    provenance : dict, optional
+        What makes this campaign's records (:func:`provenance`). Given, an existing store
+        made by another provenance, or holding records of unknown provenance, is refused
+        (``ValueError`` naming ``store``), as is a path that is not a SQLite store or
+        cannot be created. ``None`` opens the store read-only (:meth:`keys`,
+        :meth:`frame`), whatever made it.
+    """
+
+    def __init__(self, path, provenance: dict | None = None) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute("CREATE TABLE IF NOT EXISTS records (key TEXT PRIMARY KEY, record TEXT)")
+        self.provenance = provenance
+        if self.path.exists():
+            self._check_existing()
+        elif provenance is not None:
+            _check_creatable(self.path, "store")
 
-    def _connect(self) -> sqlite3.Connection:
+    @contextlib.contextmanager
+    def _db(self, readonly: bool = False):
+        """A connection (read-only: never creates the file), committed on success, rolled
+        back on error, closed in any case."""
         try:
-            return sqlite3.connect(self.path, timeout=60)
+            if readonly:
+                uri = Path(os.path.abspath(self.path)).as_uri() + "?mode=ro"
+                db = sqlite3.connect(uri, uri=True, timeout=60)
+            else:
+                db = sqlite3.connect(self.path, timeout=60)
         except sqlite3.Error as exc:
             raise ValueError(f"store: cannot open {self.path} as SQLite ({exc})") from exc
+        try:
+            with db:
+                yield db
+        except sqlite3.DatabaseError as exc:
+            raise ValueError(f"store: {self.path} is not a usable SQLite store ({exc})") from exc
+        finally:
+            db.close()
 
-    def keys(self) -> set[str]:
-        with self._connect() as db:
-            return {k for (k,) in db.execute("SELECT key FROM records")}
+    def _check_existing(self) -> None:
+        if self.path.is_dir():
+            raise ValueError(f"store: {self.path} is a directory, expected a SQLite file")
+        with self._db(readonly=True) as db:
+            tables = {n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if not tables:
+                return  # an empty SQLite file: adopted by the first put
+            if "records" not in tables:
+                raise ValueError(
+                    f"store: {self.path} is a SQLite file but not a kpstudy campaign store "
+                    f"(no records table; it has {', '.join(sorted(tables))})"
+                )
+            stored = None
+            if "meta" in tables:
+                row = db.execute("SELECT value FROM meta WHERE key = 'provenance'").fetchone()
+                stored = None if row is None else json.loads(row[0])
+            count = db.execute("SELECT COUNT(*) FROM records").fetchone()[0]
+        if self.provenance is None:
+            return
+        if stored is None and count:
+            raise ValueError(
+                f"store: {self.path} holds {count} records of unknown provenance (written "
+                "before stores recorded their checkpoint, data, settings and code); "
+                "use another store"
+            )
+        if stored is not None and stored != _jsonable(self.provenance):
+            raise ValueError(
+                f"store: {self.path} was made by another campaign "
+                f"({_differences(stored, _jsonable(self.provenance))}); use another store, "
+                "or the checkpoint, data, settings and code that made this one"
+            )
+
+    def keys(self, *, errors: bool = True) -> set[str]:
+        """The stored instances' keys (``errors=False``: leaving out ``'error'`` records)."""
+        if not self.path.exists():
+            return set()
+        with self._db(readonly=True) as db:
+            tables = {n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if "records" not in tables:
+                return set()
+            rows = db.execute("SELECT key, record FROM records").fetchall()
+        return {k for k, r in rows if errors or json.loads(r).get("status") != "error"}
 
     def put(self, instance: Instance, record: dict) -> None:
-        with self._connect() as db:  # commits on success, rolls back on error
+        """Store ``record`` for ``instance`` (replacing an older one) in one transaction,
+        creating the store with this provenance when it has none."""
+        if self.provenance is None:
+            raise ValueError("store: opened without a provenance, the store is read-only")
+        mine = json.dumps(_jsonable(self.provenance), sort_keys=True)
+        if not self.path.exists():
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(f"store: cannot create {self.path} ({exc})") from exc
+        with self._db() as db:  # one transaction: provenance, then the record
+            db.execute("CREATE TABLE IF NOT EXISTS records (key TEXT PRIMARY KEY, record TEXT)")
+            db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT)")
+            db.execute("INSERT OR IGNORE INTO meta VALUES ('provenance', ?)", (mine,))
+            (stored,) = db.execute("SELECT value FROM meta WHERE key = 'provenance'").fetchone()
+            if json.loads(stored) != json.loads(mine):  # another campaign got there first
+                raise ValueError(
+                    f"store: {self.path} was made by another campaign "
+                    f"({_differences(json.loads(stored), json.loads(mine))}); use another store"
+                )
             db.execute(
                 "INSERT OR REPLACE INTO records VALUES (?, ?)",
                 (instance.key, json.dumps(record)),
@@ -190,33 +306,83 @@ class ResultStore:
     def frame(self, instances: Iterable[Instance] | None = None) -> pd.DataFrame:
         """One row per record: the instance's fields, then the record's (of ``instances``
         only, in their order, when given)."""
-        with self._connect() as db:
-            stored = dict(db.execute("SELECT key, record FROM records"))
+        stored = {}
+        if self.path.exists():
+            with self._db(readonly=True) as db:
+                tables = {
+                    n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type='table'")
+                }
+                if "records" in tables:
+                    stored = dict(db.execute("SELECT key, record FROM records"))
         keys = list(stored) if instances is None else [i.key for i in instances if i.key in stored]
         rows = [{**json.loads(k), **json.loads(stored[k])} for k in keys]
         return pd.DataFrame(rows)
 
 
-def store_path(folder, name: str, settings: Settings) -> Path:
-    """``folder/<name>-<fingerprint>.sqlite``, the fingerprint hashing the checkpoint's
-    bytes, the dataset's annotations and perturbation sets, the other settings and the
-    code (:func:`kpstudy.io.source_fingerprint`): records of a retrained model, of other
-    settings or of changed code never mix with these."""
-    import hashlib
-
+def provenance(settings: Settings) -> dict:
+    """What makes a campaign's records: ``checkpoint`` (SHA-256 of its bytes), ``dataset``
+    (SHA-256 of ``annotations.json`` and the perturbation sets' ``meta.json``),
+    ``settings`` (the :class:`Settings` fields but the two paths) and ``code``
+    (:func:`kpstudy.io.source_fingerprint`). Moving the files keeps it; retraining,
+    regenerating, other settings or changed code do not."""
     _check_settings(settings)
-    digest = hashlib.sha256()
     data = Path(settings.data_dir)
-    for path in [
-        Path(settings.checkpoint),
-        data / "annotations.json",
-        *sorted(data.glob("perturbations/*/meta.json")),
-    ]:
-        digest.update(path.read_bytes())
+    dataset = hashlib.sha256()
+    for path in [data / "annotations.json", *sorted(data.glob("perturbations/*/meta.json"))]:
+        dataset.update(path.relative_to(data).as_posix().encode())
+        dataset.update(path.read_bytes())
     rest = {k: v for k, v in asdict(settings).items() if k not in ("checkpoint", "data_dir")}
-    digest.update(json.dumps(rest, sort_keys=True).encode())
-    digest.update(source_fingerprint().encode())
-    return Path(folder) / f"{name}-{digest.hexdigest()[:12]}.sqlite"
+    for name in ("timeout", "pose_bound_timeout"):  # 60 and 60.0 are one setting
+        rest[name] = None if rest[name] is None else float(rest[name])
+    return {
+        "checkpoint": hashlib.sha256(Path(settings.checkpoint).read_bytes()).hexdigest(),
+        "dataset": dataset.hexdigest(),
+        "settings": rest,
+        "code": source_fingerprint(),
+    }
+
+
+def store_path(folder, name: str, settings: Settings) -> Path:
+    """``folder/<name>-<fingerprint>.sqlite``, the fingerprint (12 hex digits) hashing the
+    campaign's :func:`provenance`: records of a retrained model, of other settings or of
+    changed code never mix with these."""
+    text = json.dumps(_jsonable(provenance(settings)), sort_keys=True)
+    return Path(folder) / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.sqlite"
+
+
+def _jsonable(value):
+    """``value`` as it reads back from JSON (tuples become lists)."""
+    return json.loads(json.dumps(value, sort_keys=True))
+
+
+def _differences(stored: dict, mine: dict) -> str:
+    """What differs between two provenances, in words (one line), such as ``its
+    checkpoint, timeout 60.0 (here 999.0) differ``."""
+    out = [name for name in ("checkpoint", "dataset", "code") if stored.get(name) != mine.get(name)]
+    old, new = stored.get("settings") or {}, mine.get("settings") or {}
+    out += [
+        f"{k} {old.get(k)!r} (here {new.get(k)!r})"
+        for k in sorted(set(old) | set(new))
+        if old.get(k) != new.get(k)
+    ]
+    out = out or ["provenance"]
+    return f"its {', '.join(out)} {'differs' if len(out) == 1 else 'differ'}"
+
+
+def _check_creatable(path: Path, name: str) -> None:
+    """Refuse ``path`` (``ValueError`` naming ``name``) when it cannot be created: the
+    nearest existing folder above it must take a new file (tried with a temporary file,
+    removed at once)."""
+    existing = path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{name}: cannot create {path}: {existing} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{name}: cannot create {path} ({exc.strerror or exc})") from exc
 
 
 def run_campaign(
@@ -228,6 +394,7 @@ def run_campaign(
     scheduler: str | None = None,
     progress: bool = True,
     on_record: Callable[[Instance, dict], None] | None = None,
+    retry_errors: bool = False,
 ) -> pd.DataFrame:
     """Certify every instance the store lacks; return the records of ``instances``.
 
@@ -235,22 +402,41 @@ def run_campaign(
     ----------
     instances : list of Instance
     store : ResultStore or path
+        Opened with this campaign's :func:`provenance`: a store made by another is refused
+        (``ValueError`` naming ``store``) before any work; a new one is created with the
+        first record.
     settings : Settings
     workers : int
-        Local worker processes (1: this process). Ignored with ``scheduler``.
+        Local worker processes (1: this process). Ignored with ``scheduler``. They exit
+        when this process dies; SIGTERM (with no handler of the caller's) stops them and
+        exits with status 143.
     scheduler : str, optional
-        Address of a Dask scheduler (``tcp://host:port``): the instances run there.
+        Address of a Dask scheduler (``tcp://host:port``): the instances run there. An
+        address that does not answer is refused (``ValueError`` naming ``scheduler``).
     progress : bool
         A progress bar with the time left.
     on_record : callable, optional
         Called with each new record after it is stored.
+    retry_errors : bool
+        Also rerun the instances stored with status ``'error'``.
+
+    Returns
+    -------
+    DataFrame
+        One row per stored instance of ``instances``: its fields and its record. An
+        instance that raised has ``status='error'``, ``error`` (the exception's type and
+        message) and ``total_time`` (s) only.
     """
-    store = store if isinstance(store, ResultStore) else ResultStore(store)
     _check_settings(settings)
     if isinstance(workers, bool) or int(workers) != workers or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
-    done = store.keys()
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
+        raise ValueError(f"scheduler: expected a Dask scheduler address, got {scheduler!r}")
+    path = store.path if isinstance(store, ResultStore) else store
+    store = ResultStore(path, provenance(settings))
+    done = store.keys(errors=not retry_errors)
     missing = [i for i in dict.fromkeys(instances) if i.key not in done]
+    client = _client(scheduler) if scheduler is not None and missing else None
     bar = tqdm(total=len(missing), desc="instances", unit="inst", disable=not progress)
 
     def finish(instance, record):
@@ -262,31 +448,115 @@ def run_campaign(
     try:
         if not missing:
             pass
-        elif scheduler is not None:
-            from distributed import Client
+        elif client is not None:
             from distributed import as_completed as dask_completed
 
-            with Client(scheduler) as client:
-                futures = {client.submit(run_instance, i, settings, pure=False): i for i in missing}
+            with client:
+                futures = {client.submit(_attempt, i, settings, pure=False): i for i in missing}
                 for future in dask_completed(futures):
                     finish(futures[future], future.result())
         elif workers == 1:
             for instance in missing:
-                finish(instance, run_instance(instance, settings))
+                finish(instance, _attempt(instance, settings))
         else:
             threads = max(1, (os.cpu_count() or 1) // int(workers))
-            with ProcessPoolExecutor(
-                int(workers),
-                mp_context=get_context("spawn"),
-                initializer=_init,
-                initargs=(threads,),
-            ) as pool:
-                futures = {pool.submit(run_instance, i, settings): i for i in missing}
-                for future in as_completed(futures):
-                    finish(futures[future], future.result())
+            with _sigterm_exits():
+                pool = ProcessPoolExecutor(
+                    int(workers),
+                    mp_context=get_context("spawn"),
+                    initializer=_init,
+                    initargs=(threads, os.getpid()),
+                )
+                try:
+                    futures = {pool.submit(_attempt, i, settings): i for i in missing}
+                    for future in as_completed(futures):
+                        finish(futures[future], future.result())
+                    pool.shutdown()
+                except BaseException:  # Ctrl-C, SIGTERM, a failed store: no worker outlives it
+                    _stop(pool)
+                    raise
     finally:
         bar.close()
     return store.frame(instances)
+
+
+def _client(scheduler: str):
+    """A Dask client of ``scheduler``; ``ValueError`` naming ``scheduler`` when nothing
+    answers there (a TCP address is tried first, for a quick refusal)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
+    parts = urlsplit(address)
+    if parts.scheme in ("tcp", "tls"):
+        try:
+            host, port = parts.hostname, parts.port
+        except ValueError:
+            host = port = None
+        if not host or port is None:
+            raise ValueError(
+                f"scheduler: expected an address such as tcp://host:8786, got {scheduler!r}"
+            )
+        try:
+            socket.create_connection((host, port), timeout=10).close()
+        except OSError as exc:
+            raise ValueError(
+                f"scheduler: no Dask scheduler answers at {scheduler} ({exc.strerror or exc})"
+            ) from exc
+    from distributed import Client
+
+    try:
+        return Client(scheduler, timeout=20)
+    except (OSError, TimeoutError, ValueError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"scheduler: cannot connect to {scheduler} ({message})") from exc
+
+
+@contextlib.contextmanager
+def _sigterm_exits():
+    """SIGTERM raises ``SystemExit(143)`` in the block (main thread, default handler only),
+    so that the pool's cleanup stops the workers."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield
+        return
+
+    def exit_(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, exit_)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool now: cancel what waits, kill the workers (also those mid-instance)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.kill()
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.join(5)
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _attempt(instance: Instance, settings: Settings) -> dict:
+    """:func:`run_instance`, an exception turned into an ``'error'`` record (the
+    campaign goes on)."""
+    start = time.perf_counter()
+    try:
+        return run_instance(instance, settings)
+    except Exception as exc:  # noqa: BLE001 - any failure of one instance is its result
+        return {
+            "status": "error",
+            "error": f"{type(exc).__name__}: {exc}",
+            "total_time": time.perf_counter() - start,
+        }
 
 
 def run_instance(instance: Instance, settings: Settings) -> dict:
@@ -346,10 +616,32 @@ def _context(checkpoint: str, data_dir: str):
     return backbone, seed_of
 
 
-def _init(threads: int) -> None:
+def _init(threads: int, parent: int) -> None:
+    """A pool worker's start: die with ``parent`` (the campaign's pid), set torch threads."""
+    _die_with(parent)
     import torch
 
     torch.set_num_threads(threads)
+
+
+def _die_with(parent: int, poll: float = 0.5) -> None:
+    """Exit this process when ``parent`` dies: ``PR_SET_PDEATHSIG`` on Linux, and a daemon
+    thread that checks the parent pid every ``poll`` seconds (other systems, and the
+    parent that died before the signal was armed)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(poll)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="kpstudy-parent-watch", daemon=True).start()
 
 
 def _check_settings(settings: Settings) -> None:

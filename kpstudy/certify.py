@@ -178,7 +178,13 @@ def certify(
     P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
     eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
 
-    R, t = solve_pnp(P, V, K)
+    nominal = solve_pnp(P, V, K)
+    if not nominal.valid:
+        raise ValueError(
+            "seed: PnP on the ground-truth keypoints gives no valid pose (smallest depth "
+            f"{nominal.min_depth:.4g} m, residual {nominal.rms_px:.3g} px)"
+        )
+    R, t = nominal
     factors = scale_factors(seed.image_size, hm)
     M = pose_sensitivity(P, V, K, R, t, scale=factors)
     allocation = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=hm)

@@ -6,8 +6,25 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 
+def _interruptible(run):
+    """``run`` that answers Ctrl-C (SIGINT) with one line on stderr and status 130 (128 +
+    SIGINT, as a shell reports it) instead of a traceback."""
+
+    def wrapper(argv=None) -> int:
+        try:
+            return run(argv)
+        except KeyboardInterrupt:
+            print("kpstudy: interrupted", file=sys.stderr, flush=True)
+            return 130
+
+    wrapper.__doc__, wrapper.__name__ = run.__doc__, run.__name__
+    return wrapper
+
+
+@_interruptible
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="kpstudy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -71,6 +88,11 @@ def main(argv=None) -> int:
         help="the hulls' final size, a fraction of the full hull (SABR-style sub-hulls)",
     )
     cert.add_argument(
+        "--certified-method",
+        default=default.certified_method,
+        help="the term's bounds: zonotope (the verifier's; default) or forward (cheaper, looser)",
+    )
+    cert.add_argument(
         "--certified-ramp",
         type=int,
         default=default.certified_ramp,
@@ -87,7 +109,17 @@ def main(argv=None) -> int:
     ca.add_argument("--checkpoint", required=True)
     ca.add_argument("--data", required=True, help="dataset folder with perturbations/")
     ca.add_argument("--kind", required=True, help="objects, blocks, brightness or contrast")
-    ca.add_argument("--store", required=True, help="SQLite result store; resumed when it exists")
+    ca.add_argument(
+        "--store",
+        required=True,
+        help="SQLite result store; resumed when it exists, refused when another checkpoint, "
+        "dataset, settings or code made it",
+    )
+    ca.add_argument(
+        "--retry-errors",
+        action="store_true",
+        help="rerun the instances stored with status 'error'",
+    )
     ca.add_argument("--alphas", type=float, nargs="+", default=[1.0])
     ca.add_argument("--kappas", type=float, nargs="+", default=[1.0])
     ca.add_argument("--ms", type=int, nargs="+", default=[2], help="hull sizes (local kinds)")
@@ -114,6 +146,7 @@ def main(argv=None) -> int:
 
     try:
         if args.command == "reproduce":
+            from kpstudy.io import check_writable
             from kpstudy.reproduce import STAGES, profile, reproduce
 
             prof = profile(
@@ -124,6 +157,7 @@ def main(argv=None) -> int:
                 timeout=args.timeout,
                 workers=args.workers,
             )
+            check_writable(Path(args.out) / prof.name, "out")
             out = reproduce(
                 prof,
                 args.out,
@@ -138,7 +172,14 @@ def main(argv=None) -> int:
             _evaluate(args)
         else:
             _campaign(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (
+        ValueError,
+        FileNotFoundError,
+        FileExistsError,
+        IsADirectoryError,
+        NotADirectoryError,
+        PermissionError,
+    ) as exc:
         parser.exit(2, f"kpstudy {args.command}: error: {exc}\n")
     return 0
 
@@ -148,12 +189,15 @@ def _train(args) -> None:
 
     import torch
 
+    from kpstudy.io import check_output_file
     from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig, train
 
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"threads: expected a positive integer, got {args.threads}")
         torch.set_num_threads(args.threads)
+    _check_device(args.device)
+    check_output_file(args.out, "out")  # before an epoch of work, not after it
     if args.certified_weight is None:
         args.certified_weight = CERTIFIED_WEIGHT if args.certified else 0.0
     config = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
@@ -161,12 +205,32 @@ def _train(args) -> None:
     print(json.dumps(state["history"][-1]))
 
 
+def _check_device(device: str) -> None:
+    """A ValueError naming ``device`` unless torch can allocate on it (``'cpu'``,
+    ``'cuda'``, ``'cuda:1'``, …)."""
+    import torch
+
+    available = "cpu" + (", cuda" if torch.cuda.is_available() else "")
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device: expected a torch device ({available}), got {device!r}") from None
+    try:
+        torch.empty(0, device=parsed)
+    except (RuntimeError, AssertionError) as exc:  # a CPU-only build raises AssertionError
+        raise ValueError(
+            f"device: expected an available torch device ({available}), got {device!r} ({exc})"
+        ) from None
+
+
 def _evaluate(args) -> None:
     import pandas as pd
 
     from kpstudy.evaluate import evaluate
-    from kpstudy.io import write_table, write_text_atomic
+    from kpstudy.io import check_writable, write_table, write_text_atomic
 
+    if args.out:  # OUT.csv, OUT.md and OUT_images.csv go beside each other
+        check_writable(Path(args.out).parent, "out")
     summary, per_image = evaluate(args.checkpoint, args.data, args.split)
     if args.out:
         write_table(summary, args.out)
@@ -176,9 +240,17 @@ def _evaluate(args) -> None:
 
 
 def _campaign(args) -> None:
-    from kpstudy.campaign import Settings, grid, run_campaign
+    """Run a campaign; instances that fail are stored as ``error`` (a line each on stderr)
+    and the rest go on. A store made by another checkpoint, data, settings or code, an
+    unusable ``--store`` / ``--out`` or an unreachable ``--scheduler`` is refused before
+    any work, with nothing written."""
+    from tqdm.auto import tqdm
+
+    from kpstudy.campaign import Settings, _check_creatable, grid, run_campaign
     from kpstudy.io import write_table
 
+    if args.out:  # OUT.csv and OUT.md, checked before the work
+        _check_creatable(Path(f"{args.out}.csv"), "out")
     settings = Settings(
         args.checkpoint,
         args.data,
@@ -196,12 +268,23 @@ def _campaign(args) -> None:
         levels=args.levels,
         seeds=args.seeds,
     )
+
+    def report(instance, record):
+        if record.get("status") == "error":
+            tqdm.write(f"kpstudy campaign: {instance.key}: {record['error']}", file=sys.stderr)
+
     frame = run_campaign(
-        instances, args.store, settings, workers=args.workers, scheduler=args.scheduler
+        instances,
+        args.store,
+        settings,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        on_record=report,
+        retry_errors=args.retry_errors,
     )
     if args.out:
         write_table(frame, args.out)
-    print(frame["status"].value_counts().to_string())
+    print(frame["status"].value_counts().to_string() if len(frame) else "no instances")
 
 
 if __name__ == "__main__":

@@ -82,6 +82,12 @@ def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> K
         Side of the square model input (64 for the CNN, 256 for ResNet-18).
     limit : int, optional
         Keep the first ``limit`` images of the split.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, or a dataset that is not data_gen's or holds non-finite numbers
+        (keypoints, intrinsics or pose of an image, which is named; the 3-D keypoints).
     """
     from data_gen.dataset import load_coco, read_image
 
@@ -107,8 +113,12 @@ def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> K
         kps = np.array([by_image[im["id"]]["keypoints"] for im in images], float)
         kps = kps.reshape(len(images), len(names), 3)
         poses = [by_image[im["id"]]["pose"] for im in images]
+        K = np.array([im["K"] for im in images], float)
+        R = np.array([p["R"] for p in poses], float)
+        t = np.array([p["t"] for p in poses], float)
     except (KeyError, IndexError, TypeError) as exc:
         raise ValueError(f"data: {data_dir} is not a data_gen keypoint dataset ({exc!r})") from exc
+    _check_finite(data_dir, images, kps, K, R, t, points_3d)
     image_size = sizes.pop()
 
     def load(im):
@@ -122,12 +132,34 @@ def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> K
         keypoints=to_input_pixels(uv, scale_factors(image_size, input_size)),
         visibility=kps[..., 2].astype(int),
         image_keypoints=uv,
-        K=np.array([im["K"] for im in images], float),
-        R=np.array([p["R"] for p in poses], float),
-        t=np.array([p["t"] for p in poses], float),
+        K=K,
+        R=R,
+        t=t,
         points_3d=points_3d,
         image_ids=np.array([im["id"] for im in images]),
         image_size=image_size,
         input_size=input_size,
         keypoint_names=names,
     )
+
+
+def _check_finite(data_dir, images, kps, K, R, t, points_3d) -> None:
+    """Refuse NaN or inf in the annotations, naming the first image that holds one."""
+    if points_3d.ndim != 2 or points_3d.shape[1:] != (3,) or not np.isfinite(points_3d).all():
+        raise ValueError(
+            f"data: expected finite 3-D keypoints (K, 3) in the category of {data_dir}"
+        )
+    checks = (
+        ("keypoints", kps.reshape(len(images), -1)),
+        ("intrinsics K", K.reshape(len(images), -1)),
+        ("pose R", R.reshape(len(images), -1)),
+        ("pose t", t.reshape(len(images), -1)),
+    )
+    for what, values in checks:
+        bad = np.flatnonzero(~np.isfinite(values).all(1))
+        if bad.size:
+            im = images[bad[0]]
+            raise ValueError(
+                f"data: image {im['file_name']!r} (id {im['id']}) of {data_dir} has non-finite "
+                f"{what} (NaN or inf); expected finite annotations"
+            )

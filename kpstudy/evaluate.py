@@ -26,14 +26,17 @@ AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 def pose_errors(points_3d, image_keypoints, K, R, t) -> np.ndarray:
     """Per-image pose error ``(N, 6)`` (degrees, metres) of PnP on ``image_keypoints``
     ``(N, K, 2)`` (image pixels) against the ground truth ``R (N, 3, 3)``, ``t (N, 3)``.
-    Keypoints PnP cannot use (collinear, clustered) give an infinite error."""
+    Keypoints PnP cannot use (collinear, clustered, non-finite) and poses it flags as not
+    valid (a point behind the camera, a residual near the keypoints' spread: see
+    :class:`kpstudy.pnp.PnPResult`) give an infinite error, so they never lie inside Ξ."""
     out = np.full((len(image_keypoints), 6), np.inf)
     for i, uv in enumerate(image_keypoints):
         try:
-            R_hat, t_hat = solve_pnp(points_3d, uv, K[i])
+            pose = solve_pnp(points_3d, uv, K[i])
         except ValueError:
             continue
-        out[i] = np.concatenate(pose_error(R_hat, t_hat, R[i], t[i]))
+        if pose.valid:
+            out[i] = np.concatenate(pose_error(pose.R, pose.t, R[i], t[i]))
     return out
 
 
@@ -52,19 +55,33 @@ def evaluate(checkpoint, data_dir, split: str = "test", alphas=ALPHAS, *, limit=
         ``mean_error`` (heatmap pixels), median pose error per axis (``median_roll`` …),
         ``inside_xi@α`` for each α, ``images``.
     per_image : DataFrame
-        ``image_id``, ``head``, the six pose errors and ``inside_xi@α``.
+        ``image_id``, ``head``, the six pose errors (``inf`` where PnP gives no valid
+        pose), ``pnp_valid`` and ``inside_xi@α``.
+
+    Raises
+    ------
+    ValueError
+        The checkpoint's backbone predicts non-finite keypoints.
     """
     backbone, state = load_checkpoint(checkpoint)
     data = load_keypoint_set(data_dir, split, backbone.input_size, limit=limit)
     if data.keypoint_names != state["keypoint_names"]:
         raise ValueError(f"data: the keypoints of {data_dir} are not the checkpoint's")
     heads = dict(zip(("argmax", "dsnt"), predict(backbone, data.images)))
+    for head, uv in heads.items():
+        if not np.isfinite(uv).all():
+            image = int(data.image_ids[np.flatnonzero(~np.isfinite(uv).all((1, 2)))[0]])
+            raise ValueError(
+                f"checkpoint: {checkpoint} predicts non-finite {head} keypoints "
+                f"(image id {image}); retrain it"
+            )
     summary, per_image = [], []
     for head, uv in heads.items():
         errors = pose_errors(data.points_3d, data.to_image_pixels(uv), data.K, data.R, data.t)
         frame = pd.DataFrame(errors, columns=list(AXES))
         frame.insert(0, "head", head)
         frame.insert(0, "image_id", data.image_ids)
+        frame["pnp_valid"] = np.isfinite(errors).all(1)
         row = dict(head=head, **pck(uv, data.keypoints, data.visibility > 0))
         row.update({f"median_{a}": float(np.median(errors[:, j])) for j, a in enumerate(AXES)})
         for alpha in alphas:

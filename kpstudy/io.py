@@ -13,7 +13,7 @@ import functools
 import hashlib
 import importlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 import pandas as pd
@@ -52,19 +52,41 @@ def tree_fingerprint(root) -> bytes:
     return digest.digest()
 
 
+#: Names of the temporary files of :func:`atomic_path`: ``.<target name>.<8 hex>.tmp``.
+TEMPORARY_GLOB = ".*.tmp"
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """A temporary path beside ``path`` (parent folders created) to write to; moved onto
-    ``path`` when the block succeeds, removed when it fails."""
+    ``path`` when the block succeeds, removed when it fails.
+
+    The temporary file is created with mode ``0o666`` less the umask, like any other file
+    (not ``tempfile.mkstemp``'s 0600), so that the finished file has the usual permissions.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    while True:
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            break
+        except FileExistsError:  # a name in use (odds 2⁻³² each): draw another
+            continue
     try:
-        yield tmp
+        yield str(tmp)
         os.replace(tmp, path)
     finally:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+
+
+def remove_temporary_files(root) -> list[Path]:
+    """Delete the temporary files that killed atomic writes left under ``root`` (every
+    depth); return their paths."""
+    stale = [p for p in Path(root).rglob(TEMPORARY_GLOB) if p.is_file()]
+    for p in stale:
+        p.unlink()
+    return stale
 
 
 def write_text_atomic(path, text: str) -> Path:
@@ -124,12 +146,43 @@ def check_output_dir(out, overwrite: bool, name: str = "out") -> Path:
         raise NotADirectoryError(f"{name}: {out} exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{name}: directory {out} is not empty; pass --overwrite to replace")
-    existing = out
-    while not existing.exists():
+    return check_writable(out, name)
+
+
+def check_writable(folder, name: str = "out") -> Path:
+    """Refuse a folder that can neither be written into nor created.
+
+    ``folder`` itself, or where it does not exist its nearest existing ancestor, must be a
+    directory this process may write into (a read-only file system counts as not
+    writable). Raises ``NotADirectoryError`` / ``PermissionError`` naming ``name``;
+    returns ``Path(folder)``. Nothing is created.
+    """
+    folder = Path(folder)
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
         existing = existing.parent
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise PermissionError(f"{name}: cannot write into {existing}")
-    return out
+    if not existing.is_dir():
+        raise NotADirectoryError(
+            f"{name}: cannot write into {existing} (not a directory); expected a writable "
+            f"folder for {folder}"
+        )
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(
+            f"{name}: cannot write into {existing} (read-only); expected a writable folder "
+            f"for {folder}"
+        )
+    return folder
+
+
+def check_output_file(path, name: str = "out") -> Path:
+    """Refuse an output file path that is a folder or whose folder is not writable (see
+    :func:`check_writable`), before any work: ``IsADirectoryError`` / ``NotADirectoryError``
+    / ``PermissionError`` naming ``name``. Returns ``Path(path)``."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{name}: expected a file path, got the folder {path}")
+    check_writable(path.parent, name)
+    return path
 
 
 @contextlib.contextmanager
@@ -139,7 +192,8 @@ def staged_directory(out, config: dict):
     Yields ``(staging, resumed)``. The staging folder ``.<name>.partial`` keeps
     ``config`` in ``.config.json``: a later run with the same config resumes in it (the
     caller skips what is already there), another config starts afresh. On failure the
-    staging folder stays for a resume and ``out`` is untouched.
+    staging folder stays for a resume and ``out`` is untouched. The temporary files of
+    atomic writes that a killed run left in the staging folder are not carried into ``out``.
     """
     import json
     import shutil
@@ -155,6 +209,7 @@ def staged_directory(out, config: dict):
     write_text_atomic(stamp, text)
     yield staging, resumed
     stamp.unlink()
+    remove_temporary_files(staging)  # of writes killed in an earlier, interrupted run
     if out.exists():
         shutil.rmtree(out)
     os.replace(staging, out)

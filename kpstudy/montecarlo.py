@@ -87,7 +87,9 @@ def probabilistic_soundness(
     Returns
     -------
     ndarray, shape (I,)
-        Per-image fraction in [0, 1].
+        Per-image fraction in [0, 1]. A vertex whose PnP pose is not valid (a point behind
+        the camera, a residual near the keypoints' spread: :class:`kpstudy.pnp.PnPResult`)
+        counts as outside Ξ.
     """
     P, V, K, R, t, dV, eps = _check_study(P, V, K, R, t, dv, eps_r, eps_t, n_samples, scale)
     I, N = V.shape[:2]
@@ -98,7 +100,7 @@ def probabilistic_soundness(
         signs = np.stack([_rng(seed, i).choice([-1.0, 1.0], size=(n_samples, N, 2)) for i in idx])
         V_hat = V[idx, None] + signs * dV[idx, None]  # (c, S, N, 2)
         K_c, R_c, t_c = (np.repeat(a[idx], n_samples, axis=0) for a in (K, R, t))
-        R_hat, t_hat = solve_pnp_batch(
+        pose = solve_pnp_batch(
             P,
             torch.from_numpy(V_hat.reshape(-1, N, 2)),
             K_c,
@@ -106,7 +108,8 @@ def probabilistic_soundness(
             compile=compile,
             tol_px=tol_px,
         )
-        inside = _inside(R_hat, t_hat, torch.from_numpy(R_c), torch.from_numpy(t_c), eps)
+        inside = _inside(pose.R, pose.t, torch.from_numpy(R_c), torch.from_numpy(t_c), eps)
+        inside &= pose.valid  # a pose PnP flags (behind the camera, …) is never inside Ξ
         out[idx] = inside.reshape(len(idx), n_samples).double().mean(1).numpy()
     return out
 
@@ -182,6 +185,13 @@ def soundness_completeness_table(
     I = V.shape[0]
     K = _per_image(K, I)
     poses = [solve_pnp(P, V[i], K[i]) for i in range(I)]
+    bad = [i for i, p in enumerate(poses) if not p.valid]
+    if bad:
+        raise ValueError(
+            f"V: PnP on the keypoints of image {bad[0]} gives no valid nominal pose "
+            f"(smallest depth {poses[bad[0]].min_depth:.4g} m, "
+            f"residual {poses[bad[0]].rms_px:.3g} px)"
+        )
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
     M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=scale) for i in range(I)]

@@ -1,29 +1,51 @@
-"""A certified pose-error bound per seed image, from where each keypoint can go.
+"""A certified pose-error decision per seed image, from where each keypoint can go.
 
 The paper allocates keypoint tolerances *before* verification and asks the verifier to
 keep each keypoint in its cell; this module asks the verifier *where* each keypoint can
-go and bounds the pose error from that (DESIGN.md §4, issue 7):
+go and decides the pose error from that (DESIGN.md §4, issues 7 and 27):
 
 1. :func:`kpstudy.verify.reachable_argmax` on the backbone's heatmaps (``stride`` 1: the
    argmax head's own pixels; an odd ``stride`` > 1 pools ``stride × stride`` cells around
-   the rounded ground truth, like the paper's proxy) gives each keypoint's possible pixels;
-2. each possible pixel is a keypoint deviation ``δ = v − v_gt`` in image pixels;
-3. the linearised pose error ``δξ = M δ`` (``M = dξ/dv`` in image pixels) is bounded per
+   the rounded ground truth, like the paper's proxy) gives each keypoint's possible pixels,
+   a sound superset of the argmax pixels over the hull;
+2. each possible pixel is a keypoint position in image pixels (a deviation
+   ``δ = v − v_gt`` from the ground truth);
+3. the *linearised* pose error ``δξ = M δ`` (``M = dξ/dv`` in image pixels) is bounded per
    axis by ``max |Σ_k M_k δ_k|`` over the product of the keypoints' pixel sets, which is
-   exact for that product and separable per keypoint (:func:`linearised_bound`); it is
-   never above the triangle-inequality bound ``Σ_j |M_ij| max |δ_j|``;
-4. PnP is re-solved at the extreme combinations of region pixels (the nonlinear check);
-5. the argmax → PnP pose is computed at every witness image of the reachability search:
+   exact for that product *of the linearisation* and separable per keypoint
+   (:func:`linearised_bound`); it is never above the triangle-inequality bound
+   ``Σ_j |M_ij| max |δ_j|``, but it is not a bound on PnP's error;
+4. where the product of the region sizes is at most :data:`MAX_COMBINATIONS`, PnP is
+   solved on *every* combination of region pixels (:func:`enumerated_pose_error`, in
+   chunks of :data:`ENUMERATION_CHUNK` problems): its per-axis maximum is exact for the
+   argmax → PnP pipeline over the product of the regions, hence an upper bound over the
+   hull;
+5. PnP is re-solved at the extreme and at random combinations of region pixels (the
+   nonlinear check, ``pb_nonlinear``: how far the linearisation is off);
+6. the argmax → PnP pose is computed at every witness image of the reachability search:
    one outside Ξ is a real counterexample.
 
-Verdict: ``violated`` when a witness image's argmax pose lies outside Ξ, else ``holds``
-when ``κ · bound ≤ ε`` on every axis, else ``unknown``. ``holds`` covers the argmax head
-and the linearised PnP; the nonlinear check says how far the linearisation is off.
+Every PnP here is Levenberg–Marquardt from the nominal pose
+(:func:`kpstudy.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
+behind the camera, :class:`kpstudy.pnp.PnPResult`) counts as outside Ξ (an ``inf`` error).
+
+Verdict, the first rule that applies deciding (``pb_rule``):
+
+* ``'witness'``: a witness image's argmax pose lies outside Ξ → ``violated``;
+* ``'enumeration'`` (the product of the region sizes is ≤ :data:`MAX_COMBINATIONS`):
+  ``holds`` when every combination satisfies ``κ · error ≤ ε`` on every axis, else
+  ``unknown`` (a combination outside Ξ that no witness reaches: the regions are
+  per-keypoint supersets, so it may not be a real image's). The linearised bound never
+  overrules it. A combination that a witness image reaches is decided by ``'witness'``
+  before (the witness's argmax pixels lie in the regions);
+* ``'linearised'`` (more combinations): ``holds`` when ``κ · bound ≤ ε`` on every axis,
+  else ``unknown``. Such a ``holds`` covers the argmax head and the *linearised* PnP only.
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 import time
 
 import numpy as np
@@ -37,7 +59,23 @@ from kpstudy.pooling import cell_bounds, keypoint_pooling, num_cells
 from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.verify import reachable_argmax
 
-__all__ = ["linearised_bound", "pose_bound", "region_pixels"]
+__all__ = [
+    "ENUMERATION_CHUNK",
+    "MAX_COMBINATIONS",
+    "enumerated_pose_error",
+    "linearised_bound",
+    "pose_bound",
+    "region_pixels",
+]
+
+#: Most combinations of region pixels (the product of the keypoints' region sizes) that
+#: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
+#: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
+MAX_COMBINATIONS = 10**6
+
+#: PnP problems solved together by :func:`enumerated_pose_error` (bounds its memory: about
+#: 1 KB per problem per keypoint in the solver).
+ENUMERATION_CHUNK = 10**5
 
 
 def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
@@ -96,6 +134,46 @@ def linearised_bound(M, deviations) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(hi, -lo), extremes
 
 
+def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) -> np.ndarray:
+    """Largest PnP pose error per axis over every combination of keypoint positions.
+
+    Parameters
+    ----------
+    seed : kpstudy.certify.SeedImage
+        Its ``points_3d (K, 3)`` (metres) and intrinsics ``K (3, 3)``.
+    keypoints : sequence of K arrays, shape (n_k, 2)
+        Possible ``(u, v)`` of keypoint k, image pixels; ``n_k ≥ 1``. The combinations are
+        the ``Π n_k`` rows of their product.
+    R, t : ndarray, shapes (3, 3) and (3,)
+        Nominal pose: every PnP starts there, and the error is measured from it.
+    chunk : int, optional
+        Problems solved together (default :data:`ENUMERATION_CHUNK`), ≥ 1: the memory
+        stays bounded whatever the number of combinations.
+
+    Returns
+    -------
+    ndarray, shape (6,)
+        ``max`` over the combinations of ``|Δroll|, |Δpitch|, |Δyaw|`` (degrees, wrapped)
+        and ``|Δt_x|, |Δt_y|, |Δt_z|`` (metres); ``inf`` on every axis if PnP flags some
+        combination's pose as not valid.
+    """
+    chunk = ENUMERATION_CHUNK if chunk is None else chunk
+    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
+        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
+    points = [np.asarray(p, dtype=np.float64) for p in keypoints]
+    for k, p in enumerate(points):
+        if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:
+            raise ValueError(f"keypoints[{k}]: expected shape (n >= 1, 2), got {p.shape}")
+    sizes = tuple(len(p) for p in points)
+    total = math.prod(sizes)
+    worst = np.zeros(6)
+    for begin in range(0, total, int(chunk)):
+        index = np.unravel_index(np.arange(begin, min(begin + int(chunk), total)), sizes)
+        V = np.stack([p[i] for p, i in zip(points, index)], axis=1)  # (B, K, 2)
+        worst = np.maximum(worst, _pose_errors(seed, V, R, t).max(0))
+    return worst
+
+
 def pose_bound(
     backbone,
     hull,
@@ -118,23 +196,26 @@ def pose_bound(
     ----------
     backbone : nn.Module
         Heatmap backbone with ``heatmap_size`` and ``input_size``.
-    hull : ConvexHull
+    hull : kpstudy.verify.ConvexHull
         Model inputs ``(n+1, 3, s, s)``, the seed first.
     seed : kpstudy.certify.SeedImage
-    R, t : ndarray
-        Nominal pose (PnP on the ground truth).
+    R, t : ndarray, shapes (3, 3) and (3,)
+        Nominal pose (PnP on the ground truth; t in metres): every PnP here starts there
+        and its error is measured from it.
     M : ndarray, shape (6, 2K)
-        ``dξ/dv`` at that pose in *image* pixels.
+        ``dξ/dv`` at that pose, degrees and metres per *image* pixel (columns
+        ``u1, v1, u2, …``); only the linearised bound uses it.
     eps : ndarray, shape (6,)
         Ξ's half-widths, degrees then metres.
     kappa : float
-        The bound must satisfy ``κ · bound ≤ ε``.
+        ``holds`` needs ``κ · error ≤ ε`` on every axis, for the enumerated PnP error
+        (at most :data:`MAX_COMBINATIONS` combinations) or else the linearised bound.
     stride : int
         Odd cell side in heatmap pixels; 1 certifies the argmax pixel itself.
     timeout : float
         Seconds for :func:`kpstudy.verify.reachable_argmax`. Its regions depend on the hull
-        only, so the instances of one hull (their α, κ) share one search; ``pb_time``
-        counts the search in full for each.
+        only, so the instances of one hull (their α, κ) share one search, and one
+        enumeration; ``pb_time`` counts both in full for each.
     method : {'forward', 'zonotope', 'ibp'}
         Its bounds: ``'zonotope'`` gives far smaller regions on a trained CNN, at tens
         of seconds per node on 2 CPU cores (``'forward'``: a fraction of a second).
@@ -146,10 +227,18 @@ def pose_bound(
     Returns
     -------
     dict
-        ``pb_status``, ``pb_bound`` (6: degrees, metres), ``pb_nonlinear`` (6: the largest
-        PnP pose error found at region corners), ``pb_time`` (s), ``pb_nodes``,
-        ``pb_complete`` (possible = reached), ``pb_pixels`` (possible pixels per keypoint),
-        ``pb_counterexample`` (λ or None), ``pb_stride``, ``pb_method``.
+        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the
+        rule that decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module
+        docstring); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
+        metres); ``pb_combinations`` (the product of the region sizes: an int, a float
+        above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over every combination,
+        degrees then metres, ``inf`` if some pose is not valid) when they were enumerated,
+        else None; ``pb_nonlinear`` (6: the largest PnP pose error found at region
+        corners; ``inf`` if PnP flags a corner's pose as not valid); ``pb_time`` (s, the
+        search and the enumeration each counted in full); ``pb_nodes``; ``pb_complete``
+        (possible = reached); ``pb_pixels`` (possible pixels per keypoint);
+        ``pb_counterexample`` (λ of the witness image, or None); ``pb_stride``;
+        ``pb_method``.
     """
     start = time.perf_counter()
     if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
@@ -163,8 +252,10 @@ def pose_bound(
     before = time.perf_counter() - start
     regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, timeout, method)
     start = time.perf_counter()  # the search is counted once, cached or not
-    deviations = [to_image_pixels(p, factors) - v for p, v in zip(pixels, V)]
+    positions = [to_image_pixels(p, factors) for p in pixels]  # (n_k, 2) image pixels
+    deviations = [p - v for p, v in zip(positions, V)]
     bound, extremes = linearised_bound(M, deviations)
+    combinations = math.prod(len(p) for p in positions)
 
     # Nonlinear check: PnP at the extreme and at random combinations of region pixels.
     rng = np.random.default_rng(sample_seed)
@@ -181,16 +272,26 @@ def pose_bound(
         uv = argmax_keypoints(backbone(hull.image(lam)).float()).double().numpy()
     errors = _pose_errors(seed, to_image_pixels(uv, factors), R, t)
     outside = np.flatnonzero(~np.all(errors <= eps, axis=1))
+    exact, enumeration_time = None, 0.0
     if outside.size:
-        status, counterexample = "violated", lam[outside[0]].tolist()
+        status, rule, counterexample = "violated", "witness", lam[outside[0]].tolist()
+    elif combinations <= MAX_COMBINATIONS:
+        # Exact over the product of the regions; a combination outside Ξ keeps it open,
+        # whatever the linearised bound says.
+        exact, enumeration_time = _enumerated(seed, positions, R, t)
+        inside = np.all(kappa * exact <= eps)
+        status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
     else:
         inside = np.all(kappa * bound <= eps)
-        status, counterexample = ("holds" if inside else "unknown"), None
+        status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
     return {
         "pb_status": status,
+        "pb_rule": rule,
         "pb_bound": bound.tolist(),
+        "pb_combinations": combinations if combinations <= 2**53 else float(combinations),
+        "pb_exact": None if exact is None else exact.tolist(),
         "pb_nonlinear": nonlinear.tolist(),
-        "pb_time": before + search_time + time.perf_counter() - start,
+        "pb_time": before + search_time + enumeration_time + time.perf_counter() - start,
         "pb_nodes": regions.nodes,
         "pb_complete": regions.complete,
         "pb_pixels": [len(p) for p in pixels],
@@ -221,11 +322,38 @@ def _regions(key, backbone, hull, centers, stride: int, timeout: float, method: 
     return _CACHE[key][1:]
 
 
+_ENUMERATED: dict = {}
+
+
+def _enumerated(seed, positions, R, t) -> tuple[np.ndarray, float]:
+    """:func:`enumerated_pose_error` of the keypoint positions ``(n_k, 2)`` (image pixels)
+    and its seconds; like :func:`_regions`, the last few are kept for the other α, κ
+    cells of the same hull (the key is the content of every input)."""
+    digest = hashlib.sha1()
+    for array in (*positions, seed.points_3d, seed.K, R, t):
+        array = np.ascontiguousarray(array, dtype=np.float64)
+        digest.update(repr(array.shape).encode() + array.tobytes())
+    key = digest.hexdigest()
+    if key not in _ENUMERATED:
+        start = time.perf_counter()
+        exact = enumerated_pose_error(seed, positions, R, t)
+        while len(_ENUMERATED) >= 4:
+            _ENUMERATED.pop(next(iter(_ENUMERATED)))
+        _ENUMERATED[key] = (exact, time.perf_counter() - start)
+    exact, seconds = _ENUMERATED[key]
+    return exact.copy(), seconds
+
+
 def _pose_errors(seed, V, R, t) -> np.ndarray:
-    """Pose errors ``(B, 6)`` of PnP (from the nominal pose) on keypoints ``V (B, K, 2)``."""
+    """Pose errors ``(B, 6)`` of PnP (from the nominal pose) on keypoints ``V (B, K, 2)``;
+    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pnp.PnPResult`), so that
+    it never lies inside Ξ."""
     B = len(V)
-    R_hat, t_hat = solve_pnp_batch(
+    pose = solve_pnp_batch(
         seed.points_3d, V, seed.K, (np.broadcast_to(R, (B, 3, 3)), np.broadcast_to(t, (B, 3)))
     )
-    dr = wrap_degrees(euler_from_matrix(R_hat) - euler_from_matrix(R)[None])
-    return np.concatenate([dr, np.abs(t_hat - t)], axis=1)
+    errors = np.full((B, 6), np.inf)
+    ok = pose.valid
+    dr = wrap_degrees(euler_from_matrix(pose.R[ok]) - euler_from_matrix(R)[None])
+    errors[ok] = np.concatenate([dr, np.abs(pose.t[ok] - t)], axis=1)
+    return errors

@@ -156,7 +156,13 @@ def _summary(table: pd.DataFrame) -> list[str]:
     lines.append(
         f"{total} instances: {holds} holds, {int(table.violated.sum())} violated "
         f"({at_seed} of them at the seed image itself, λ = 0), {int(table.unknown.sum())} "
-        f"unknown; {inside} had the seed's target-model pose inside Ξ."
+        f"unknown"
+        + (
+            f", {int(table.errors.sum())} not certifiable (stored as errors)"
+            if "errors" in table
+            else ""
+        )
+        + f"; {inside} had the seed's target-model pose inside Ξ."
     )
     if "dv_zero" in table:
         lines.append(
@@ -170,7 +176,7 @@ def _summary(table: pd.DataFrame) -> list[str]:
         inside = table.seeds_inside.sum()
         rate = lambda column: "n/a" if not inside else f"{column.sum() / inside:.1%}"  # noqa: E731
         lines.append(
-            f"Pose-bound method (reachable keypoint regions → certified pose bound) on the same "
+            f"Pose-bound method (reachable keypoint regions → pose decision) on the same "
             f"instances: {int(table.pb_holds.sum())} holds; verified rate "
             f"{rate(table.pb_verified_rate * table.seeds_inside)} against the allocation's "
             f"{rate(table.verified_rate * table.seeds_inside)}. It verifies "
@@ -180,6 +186,13 @@ def _summary(table: pd.DataFrame) -> list[str]:
             "holds (the linearisation's error, shared with the allocation method). Mean time "
             f"{table.pb_time_mean.mean():.3g} s per instance (one region search per hull, "
             "counted in full for each of its α, κ cells)."
+        )
+    if "pb_by_enumeration" in table:
+        lines.append(
+            f"Decided by a witness image outside Ξ: {int(table.pb_by_witness.sum())}; by PnP on "
+            f"every combination of region pixels (exact for argmax → PnP): "
+            f"{int(table.pb_by_enumeration.sum())}, {int(table.pb_enumeration_holds.sum())} of "
+            f"them holds; by the linearised bound: {int(table.pb_by_linearised.sum())}."
         )
     return lines
 

@@ -353,6 +353,8 @@ def run_notebooks(
     prof: Profile, out: Path, *, scheduler: str | None = None, progress: bool = True
 ) -> list[Path]:
     """Execute every study notebook whose parameters or inputs changed."""
+    import tempfile
+
     import papermill
 
     out = Path(out).resolve()
@@ -406,17 +408,31 @@ def run_notebooks(
             continue
         stamp.unlink(missing_ok=True)
         print(f"[reproduce] {name}: running", flush=True)
-        papermill.execute_notebook(
-            str(source),
-            str(target),
-            parameters=params,
-            cwd=str(NOTEBOOKS),
-            progress_bar=False,
-            kernel_name="python3",
-        )
+        with tempfile.TemporaryDirectory(prefix="kpstudy-kernel-") as sockets:
+            papermill.execute_notebook(
+                str(source),
+                str(target),
+                parameters=params,
+                cwd=str(NOTEBOOKS),
+                progress_bar=False,
+                kernel_name="python3",
+                config=_ipc_kernel(sockets),
+            )
         write_text_atomic(stamp, json.dumps(signature, indent=1) + "\n")
         executed.append(target)
     return executed
+
+
+def _ipc_kernel(folder: str):
+    """nbclient's kernel-manager settings (a traitlets ``Config``) for a kernel that talks
+    over Unix sockets ``folder/kernel-1…5`` (a private temporary folder) instead of
+    unencrypted TCP on localhost: no local user can listen in, and IPKernel has no
+    eavesdropping warning to print. Where Unix sockets are missing (Windows), TCP."""
+    from traitlets.config import Config
+
+    if os.name != "posix":
+        return Config()
+    return Config({"KernelManager": {"transport": "ipc", "ip": os.path.join(folder, "kernel")}})
 
 
 def _signature(notebook: Path, params: dict) -> dict:

@@ -8,6 +8,9 @@ its axes and reports, per cell:
 * ``instances``, ``seeds_inside`` (seeds whose target-model pose error lies in Ξ) and
   the counts of ``holds`` / ``violated`` / ``unknown`` and ``violated_at_seed`` (the
   counterexample is the seed image itself, λ = 0);
+* ``errors``: instances that could not be certified (status ``error``, e.g. a seed with
+  a keypoint outside the heatmap). They count in ``instances`` only: holds + violated +
+  unknown + errors = instances, and every other column is over the other instances;
 * ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
   when no seed is inside);
 * ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
@@ -17,15 +20,20 @@ its axes and reports, per cell:
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_verified_rate`` (same
-  denominator), ``pb_time_mean``,
-  ``pb_nonlinear_outside`` (``holds`` whose PnP re-solved at region corners leaves Ξ: the
-  linearisation's error, which the allocation method shares) and ``pb_only`` /
+  denominator), ``pb_time_mean``; ``pb_by_witness``, ``pb_by_enumeration``,
+  ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before
+  it was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
+  otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those
+  by enumeration (exact for the argmax → PnP pipeline); ``pb_nonlinear_outside``
+  (``holds`` whose PnP re-solved at region corners leaves Ξ: the linearised bound's error,
+  which the allocation method shares; never a ``holds`` by enumeration) and ``pb_only`` /
   ``allocation_only``: seeds inside Ξ that one method verifies and the other does not.
 """
 
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pandas as pd
@@ -117,24 +125,33 @@ PAPER_T_PROB = {
 }
 
 _STATUSES = ("holds", "violated", "unknown")
+_PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.pose_bound's pb_rule
 POSE_AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 
 
 def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     """Per cell of ``by``: counts, verified rate and time (module docstring)."""
-    need = {*by, "status", "time", "seed_inside"}
+    need = {*by, "status"}
+    if "status" in records and (records["status"] != "error").any():
+        need |= {"time", "seed_inside"}
     missing = sorted(need - set(records.columns))
     if missing:
         raise ValueError(f"records: expected campaign records with columns {missing}")
+    records = records.assign(
+        **{c: np.nan for c in ("time", "seed_inside") if c not in records}
+    )  # only error records: no certificate columns
     rows = []
-    for key, cell in records.groupby(by, sort=True, dropna=False):
+    for key, everything in records.groupby(by, sort=True, dropna=False):
         key = key if isinstance(key, tuple) else (key,)
+        failed = everything["status"] == "error"
+        cell = everything[~failed]
         inside = cell["seed_inside"].astype(bool)
         holds = cell["status"] == "holds"
         row = dict(zip(by, key))
-        row["instances"] = len(cell)
+        row["instances"] = len(everything)
         row["seeds_inside"] = int(inside.sum())
         row.update({s: int((cell["status"] == s).sum()) for s in _STATUSES})
+        row["errors"] = int(failed.sum())
         row["violated_at_seed"] = int(
             sum(
                 status == "violated" and isinstance(lam, (list, str)) and max(_list(lam)) <= 1e-9
@@ -146,7 +163,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["verified_rate"] = (
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
-        if "dv" in cell:
+        if "dv" in cell and len(cell):
             dv = np.concatenate([np.ravel(_list(v)) for v in cell["dv"]])
             row["dv_mean"] = float(dv.mean())
             row["dv_zero"] = float(np.mean(dv == 0))
@@ -161,6 +178,9 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
                 float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
             )
             row["pb_time_mean"] = float(cell["pb_time"].mean())
+            rules = _pb_rules(cell)
+            row.update({f"pb_by_{r}": int((rules == r).sum()) for r in _PB_RULES})
+            row["pb_enumeration_holds"] = int((pb & (rules == "enumeration")).sum())
             row["pb_nonlinear_outside"] = int(
                 sum(
                     bool(ok) and np.any(np.asarray(_list(n)) > eps)
@@ -175,6 +195,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "instances",
         "seeds_inside",
         *_STATUSES,
+        "errors",
         "violated_at_seed",
         "verified_rate",
         "dv_mean",
@@ -189,6 +210,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_unknown",
             "pb_verified_rate",
             "pb_time_mean",
+            *(f"pb_by_{r}" for r in _PB_RULES),
+            "pb_enumeration_holds",
             "pb_nonlinear_outside",
             "pb_only",
             "allocation_only",
@@ -197,8 +220,26 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
 
 
 def _list(value) -> list:
-    """A list field of a record, as stored (a list) or read back from CSV (JSON text)."""
-    return json.loads(value) if isinstance(value, str) else value
+    """A list field of a record, as stored (a list) or read back from CSV (JSON text, or
+    Python's text of a list: ``inf`` and ``nan`` included)."""
+    if not isinstance(value, str):
+        return value
+    return json.loads(re.sub(r"\b(inf|nan)\b", lambda m: _JSON_FLOATS[m[1]], value))
+
+
+_JSON_FLOATS = {"inf": "Infinity", "nan": "NaN"}
+
+
+def _pb_rules(cell: pd.DataFrame) -> pd.Series:
+    """The rule that decided each record's ``pb_status`` (:mod:`kpstudy.pose_bound`):
+    ``pb_rule`` where stored, else the only rules of the code before it (``'witness'``
+    for ``violated``, ``'linearised'`` for ``holds`` / ``unknown``); None without a
+    ``pb_status`` (e.g. an ``error`` record)."""
+    old = {"violated": "witness", "holds": "linearised", "unknown": "linearised"}
+    inferred = cell["pb_status"].map(old)
+    if "pb_rule" not in cell:
+        return inferred
+    return cell["pb_rule"].where(cell["pb_rule"].isin(_PB_RULES), inferred)
 
 
 def _eps(cell: pd.DataFrame) -> list[np.ndarray]:
@@ -310,40 +351,77 @@ def plot_table(table: pd.DataFrame, axes: list[str], title: str):
     return fig
 
 
-def pose_bound_ratios(records: pd.DataFrame) -> pd.DataFrame:
-    """Certified pose-error bound ÷ ε at α = 1 (``[10°, 10°, 10°, 4, 4, 20 m]``) per pose
-    axis, one row per hull (the bound does not depend on α or κ); records whose search
-    stopped at a violated seed have no bound and are left out."""
+def pose_bound_ratios(records: pd.DataFrame, column: str = "pb_bound") -> pd.DataFrame:
+    """A pose-bound quantity ÷ ε at α = 1 (``[10°, 10°, 10°, 4, 4, 20 m]``) per pose axis,
+    one row per hull (it does not depend on α or κ).
+
+    ``column``: ``'pb_bound'``, the linearised bound ``max |M δ|`` over the regions
+    (records whose search stopped at a violated seed have none and are left out), or
+    ``'pb_exact'``, the largest PnP pose error over every combination of region pixels
+    (certified: exact for argmax → PnP over the regions; only hulls whose combinations
+    were enumerated, ``inf`` where some pose is not valid). Columns: the hull's fields and
+    ``roll, pitch, yaw, tx, ty, tz``.
+    """
     from kpstudy.montecarlo import EPS_R, EPS_T
 
-    hull = [c for c in ("kind", "image_id", "m", "overlapping", "level") if c in records]
-    rows = records.dropna(subset=["pb_bound"]).drop_duplicates(hull)
-    bound = np.array([_list(b) for b in rows["pb_bound"]])
-    out = pd.DataFrame(bound.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=POSE_AXES)
+    if column not in ("pb_bound", "pb_exact"):
+        raise ValueError(f"column: expected 'pb_bound' or 'pb_exact', got {column!r}")
+    fields = ("model", "kind", "image_id", "m", "overlapping", "level")
+    hull = [c for c in fields if c in records]
+    if column not in records:  # records from before the enumeration: no exact errors
+        return pd.DataFrame(columns=[*hull, *POSE_AXES])
+    rows = records.dropna(subset=[column]).drop_duplicates(hull)
+    values = np.array([_list(b) for b in rows[column]], dtype=np.float64)
+    out = pd.DataFrame(values.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=POSE_AXES)
     return pd.concat([rows[hull].reset_index(drop=True), out], axis=1)
 
 
 def plot_pose_bounds(records: pd.DataFrame, title: str):
-    """Distribution of the certified bound ÷ ε per pose axis (log scale): below 1 is
-    inside Ξ at α = 1, below 1.5 at α = 1.5. Returns a matplotlib figure."""
+    """Distribution of the linearised bound ÷ ε per pose axis (log scale), one point per
+    hull, and beside it, where the hull's combinations were enumerated, the certified
+    (exact) PnP error ÷ ε: below 1 is inside Ξ at α = 1, below 1.5 at α = 1.5; an
+    infinite error (a pose PnP flags as not valid) is a triangle at the top edge. Returns
+    a matplotlib figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ratios = pose_bound_ratios(records)
+    linearised = pose_bound_ratios(records, "pb_bound")
+    exact = pose_bound_ratios(records, "pb_exact")
     fig, ax = plt.subplots(figsize=(6.5, 4), layout="constrained")
-    jitter = np.random.default_rng(0).uniform(-0.18, 0.18, len(ratios))
-    for i, a in enumerate(POSE_AXES):  # one point per hull: the distribution is often bimodal
-        ax.scatter(i + jitter, ratios[a], s=12, alpha=0.6, color="C0")
-        if len(ratios):
-            ax.hlines(ratios[a].median(), i - 0.3, i + 0.3, color="C1", lw=2)
+    rng = np.random.default_rng(0)
+    finite = np.concatenate([linearised[list(POSE_AXES)].to_numpy(np.float64).ravel(), [1.5]])
+    finite = np.concatenate([finite, exact[list(POSE_AXES)].to_numpy(np.float64).ravel()])
+    finite = finite[np.isfinite(finite) & (finite > 0)]
+    top = 2.0 * finite.max()
+    series = (
+        (linearised, -0.2, "C0", "linearised bound"),
+        (exact, 0.2, "C2", "certified: PnP over every region combination"),
+    )
+    for ratios, shift, color, label in series:
+        if not len(ratios):
+            continue
+        jitter = rng.uniform(-0.12, 0.12, len(ratios))
+        for i, a in enumerate(POSE_AXES):  # one point per hull: often bimodal
+            y = ratios[a].to_numpy(np.float64)
+            off = np.isinf(y)  # a pose PnP flags as not valid: outside Ξ, drawn at the top
+            x = i + shift + jitter
+            ax.scatter(x[~off], y[~off], s=12, alpha=0.6, color=color, label=label)
+            ax.scatter(x[off], np.full(off.sum(), top), s=18, marker="^", color=color)
+            y = np.where(off, top, y)
+            ax.hlines(np.median(y), i + shift - 0.15, i + shift + 0.15, color="C1", lw=2)
+            label = None
     ax.set_xticks(range(6), POSE_AXES)
     for level, style in ((1.0, "--"), (1.5, ":")):
         ax.axhline(level, color="k", ls=style, lw=0.8, label=f"inside Ξ at α = {level:g}")
     ax.set_yscale("log")
-    ax.set_ylabel("certified bound ÷ ε (α = 1)")
-    ax.set_title(f"{title}\n{len(ratios)} hulls, median in orange", fontsize="medium")
+    ax.set_ylabel("pose error ÷ ε (α = 1)")
+    ax.set_title(
+        f"{title}\nlinearised bound: {len(linearised)} hulls, certified (enumerated): "
+        f"{len(exact)}; medians in orange",
+        fontsize="medium",
+    )
     ax.legend(fontsize="small")
     return fig
 

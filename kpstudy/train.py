@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import io
 import json
+import math
+import numbers
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -76,6 +78,7 @@ class TrainConfig:
     certified_start: int = 1
     certified_ramp: int = 4
     certified_scale: float = 1.0
+    certified_method: str = "zonotope"
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -88,13 +91,21 @@ class TrainConfig:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         if self.images is not None and (not isinstance(self.images, int) or self.images < 1):
             raise ValueError(f"images: expected a positive integer or None, got {self.images!r}")
+        from kpstudy.certified import BOUND_METHODS
+
+        if self.certified_method not in BOUND_METHODS:
+            raise ValueError(
+                f"certified_method: expected one of {BOUND_METHODS}, got {self.certified_method!r}"
+            )
         if not 0 < self.certified_scale <= 1:
             raise ValueError(
                 f"certified_scale: expected a number in (0, 1], got {self.certified_scale!r}"
             )
         for name in ("lr", "sigma"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+            if not (_finite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(
+                    f"{name}: expected a positive number (finite), got {getattr(self, name)!r}"
+                )
         if isinstance(self.certified_start, bool) or not (
             isinstance(self.certified_start, int) and self.certified_start >= 0
         ):
@@ -102,8 +113,23 @@ class TrainConfig:
                 f"certified_start: expected an integer >= 0, got {self.certified_start!r}"
             )
         for name in ("weight_decay", "dsnt_weight", "jitter", "noise", "certified_weight"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name}: expected a number >= 0, got {getattr(self, name)!r}")
+            if not (_finite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(
+                    f"{name}: expected a number >= 0 (finite), got {getattr(self, name)!r}"
+                )
+
+
+class TrainingDiverged(ValueError):
+    """The training loss became NaN or infinite; the checkpoint on disk is the last good one."""
+
+
+def _finite(x) -> bool:
+    return isinstance(x, numbers.Real) and math.isfinite(x)
+
+
+def _finite_state(model: dict) -> bool:
+    """Whether every floating-point tensor of a model state dict is finite."""
+    return all(bool(torch.isfinite(v).all()) for v in model.values() if v.is_floating_point())
 
 
 def heatmap_targets(keypoints: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
@@ -171,6 +197,10 @@ def train(
     A checkpoint already at ``out`` with the same configuration is resumed (a finished
     one is returned as it is); one with another configuration is an error.
 
+    Training stops with :class:`TrainingDiverged` (a ``ValueError``) at the first
+    non-finite loss, or before saving non-finite weights; the checkpoint at ``out`` then
+    stays the last good one (none is written if the first epoch diverges).
+
     Returns
     -------
     dict
@@ -181,6 +211,11 @@ def train(
     if out.exists() and out.is_dir():
         raise ValueError(f"out: expected a checkpoint file path, got the folder {out}")
     state = _resume(out, config)
+    if state is not None and not _finite_state(state.get("model", {})):
+        raise ValueError(
+            f"out: {out} holds non-finite weights (a diverged run); delete it or choose "
+            "another --out"
+        )
     if state is not None and state["epoch"] >= config.epochs:
         return state
     size = BACKBONES[config.backbone].input_size
@@ -247,6 +282,8 @@ def train(
             optimiser.step()
             scheduler.step()
             value = loss.item()
+            if not math.isfinite(value):
+                raise TrainingDiverged(_diverged(out, state["epoch"], epoch, step, value))
             total += value * len(idx)
             bar.set_postfix(loss=f"{value:.3f}")
         arg, dsnt = predict(backbone, val_set.images)
@@ -267,10 +304,26 @@ def train(
             scheduler=scheduler.state_dict(),
             keypoint_names=train_set.keypoint_names,
         )
+        if not _finite_state(state["model"]):  # the last step's update overflowed
+            raise TrainingDiverged(_diverged(out, epoch, epoch, steps - 1, "non-finite weights"))
         _save(out, state)
         if progress:
             print(json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
     return state
+
+
+def _diverged(out: Path, saved_epoch: int, epoch: int, step: int, what) -> str:
+    """One line: where training diverged and which checkpoint is kept."""
+    kept = (
+        f"the checkpoint of epoch {saved_epoch} at {out} is kept"
+        if saved_epoch
+        else "no checkpoint was written"
+    )
+    what = f"the loss is {what}" if isinstance(what, float) else f"it produced {what}"
+    return (
+        f"lr: training diverged at epoch {epoch + 1}, step {step + 1}: {what} "
+        f"(expected a smaller --lr); {kept}"
+    )
 
 
 def plot_history(checkpoints: dict):
@@ -294,7 +347,8 @@ def plot_history(checkpoints: dict):
 
 
 def load_checkpoint(path) -> tuple[nn.Module, dict]:
-    """The trained backbone (eval mode) and the checkpoint dictionary at ``path``."""
+    """The trained backbone (eval mode) and the checkpoint dictionary at ``path``; a
+    ValueError naming it if it is not a checkpoint or holds non-finite weights."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint: no file at {path}")
@@ -307,6 +361,8 @@ def load_checkpoint(path) -> tuple[nn.Module, dict]:
         backbone.load_state_dict(state["model"])
     except Exception as exc:
         raise ValueError(f"checkpoint: cannot read {path} ({exc})") from exc
+    if not _finite_state(state["model"]):
+        raise ValueError(f"checkpoint: {path} holds non-finite weights (NaN or inf); retrain it")
     return backbone.eval(), state
 
 
@@ -385,6 +441,7 @@ class _CertifiedTerm:
         W, H = train_set.image_size
         s = train_set.input_size
         self.hulls, self.sigma = config.certified_hulls, config.sigma
+        self.method = config.certified_method
         self.sampler = HullSampler(occluder_patches(seed=config.seed), (s / W, s / H), config.seed)
         self.backbone = backbone
         self.graph = bound_graph(backbone)
@@ -397,7 +454,7 @@ class _CertifiedTerm:
         n = min(self.hulls, len(x))
         vertices = self.sampler(x[:n].contiguous())
         with self.statistics.frozen():
-            lower, upper = hull_bounds(self.graph, vertices, scale)
+            lower, upper = hull_bounds(self.graph, vertices, scale, self.method)
         return robust_heatmap_loss(lower, upper, keypoints[:n], weights[:n], self.sigma)
 
 

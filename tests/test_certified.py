@@ -111,15 +111,16 @@ def test_random_hulls_are_the_studys_kinds(patches):
     assert torch.equal(sampler(images[:4]), first)
 
 
-def test_the_bound_term_contains_sampled_heatmaps_and_bounds_the_loss(patches):
+@pytest.mark.parametrize("method, scale", [("zonotope", 0.05), ("forward", 0.5)])
+def test_the_bound_term_contains_sampled_heatmaps_and_bounds_the_loss(patches, method, scale):
     net = build_backbone("cnn_affine").eval()
     torch.manual_seed(1)
     images = torch.rand(3, 3, 64, 64)
     V = HullSampler(patches, seed=1)(images)
-    lower, upper = hull_bounds(bound_graph(net), V, scale=0.5)
+    lower, upper = hull_bounds(bound_graph(net), V, scale=scale, method=method)
     keypoints, weights = torch.rand(1, 23, 2) * 63, torch.ones(1, 23)
     for b in range(3):
-        hull = ConvexHull(V[b, 0] + 0.5 * (V[b] - V[b, 0]))
+        hull = ConvexHull(V[b, 0] + scale * (V[b] - V[b, 0]))
         lam = hull.sample(64, seed=b).float()
         with torch.no_grad():
             h = net(hull.image(lam))
@@ -136,7 +137,8 @@ def test_the_bound_term_contains_sampled_heatmaps_and_bounds_the_loss(patches):
     )
 
 
-def test_a_gradient_step_on_the_bound_term_lowers_it():
+@pytest.mark.parametrize("method", ["zonotope", "forward"])
+def test_a_gradient_step_on_the_bound_term_lowers_it(method):
     net = SmallHeatmapNet().eval()
     graph = bound_graph(net)
     torch.manual_seed(2)
@@ -145,7 +147,7 @@ def test_a_gradient_step_on_the_bound_term_lowers_it():
     keypoints, weights = torch.rand(4, 2, 2) * 7, torch.ones(4, 2)
 
     def term():
-        return robust_heatmap_loss(*hull_bounds(graph, V), keypoints, weights, 1.0)
+        return robust_heatmap_loss(*hull_bounds(graph, V, method=method), keypoints, weights, 1.0)
 
     before = term()
     before.backward()
@@ -178,10 +180,14 @@ def test_the_bound_pass_normalises_by_the_natural_passs_batch_statistics():
         assert torch.equal(m.running_mean, before)
 
 
-def test_hull_scale_is_checked():
+def test_hull_scale_and_method_are_checked():
     net = SmallHeatmapNet().eval()
     with pytest.raises(ValueError, match="scale: expected a number in"):
         hull_bounds(bound_graph(net), torch.zeros(1, 2, 3, 8, 8), scale=2.0)
+    with pytest.raises(ValueError, match="method: expected one of"):
+        hull_bounds(bound_graph(net), torch.zeros(1, 2, 3, 8, 8), method="crown")
+    with pytest.raises(ValueError, match="certified_method: expected one of"):
+        TrainConfig(certified_method="ibp")
 
 
 def test_bad_certified_config_is_named():
@@ -210,7 +216,7 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
         certified_hulls=2,
         certified_start=0,
         certified_ramp=1,
-        certified_scale=0.5,
+        certified_scale=0.05,
     )
     path = tmp_path / "cnn_affine.pt"
     state = train(tiny_dataset, path, config, progress=False)

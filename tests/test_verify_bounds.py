@@ -305,6 +305,44 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     assert (y >= lo.min(0).values - 1e-9).all() and (y <= hi.max(0).values + 1e-9).all()
 
 
+@pytest.mark.parametrize("net_name", ["local", "pool"])
+def test_zonotope_bounds_have_the_gradient_of_their_finite_differences(net_name):
+    """The symbol blocks' backward (kpstudy.verify.symbols.assemble) is the derivative of
+    the bounds in the network's parameters: directional finite differences, float64."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+
+    if net_name == "local":
+        net, shape = LocalNet(1).double(), (2, 11, 9)
+    else:
+        net, shape = PoolProxy(1, dvs=((1, 1), (1, 2))).double(), (1, 10, 10)
+    hull = ConvexHull(hull_vertices(1, 3, shape, spread=0.3, dtype=torch.float64))
+    graph = trace(net, hull.vertices[:1], differentiable=True)
+    region = B.node_region(hull, hull.split(hull.root()), graph.dtype)
+
+    def width():
+        out, _ = B.propagate(graph, region, zonotope=True)
+        assert out.mid.shape[1] > out.rad.shape[1]  # error symbols were made
+        low, high = out.bounds()
+        return (high - low).sum() + low.sum()
+
+    params = list(net.parameters())
+    width().backward()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):
+        v = [torch.randn(p.shape, dtype=p.dtype, generator=g) for p in params]
+        slope = sum((p.grad * d).sum() for p, d in zip(params, v))
+        values = []
+        with torch.no_grad():
+            for h in (1e-6, -2e-6):
+                for p, d in zip(params, v):
+                    p += h * d
+                values.append(width())
+            for p, d in zip(params, v):
+                p += 1e-6 * d
+        torch.testing.assert_close((values[0] - values[1]) / 2e-6, slope, rtol=1e-4, atol=1e-6)
+
+
 def test_bounds_are_exact_on_a_linear_network():
     net = nn.Sequential(nn.Conv2d(2, 3, 3), nn.Flatten(), nn.Linear(3 * 6 * 6, 4)).double().eval()
     V = hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64)

@@ -52,6 +52,7 @@ def verify(
         Eval-mode network of the operators of :mod:`kpstudy.verify.graph`; its flattened
         output has ``spec.n_outputs`` entries.
     input_set : ConvexHull, Parallelotope or Box
+        Images in the model's dtype (else a ValueError naming ``input_set``).
     spec : ArgmaxSpec
     method : {'auto', 'ibp', 'forward', 'crown', 'zonotope'}
         Bounds at each node (:mod:`kpstudy.verify.bounds`). ``'auto'`` is ``'zonotope'``:
@@ -92,6 +93,7 @@ def verify(
     method = _check(method, timeout, max_nodes, batch, tol)
     if not isinstance(spec, ArgmaxSpec):
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
+    _check_dtype(model, input_set)
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
     search = _Search(model, graph, input_set, spec, method, tol, memory, start + timeout)
@@ -214,6 +216,19 @@ def _take(queue: list, batch: int):
         levels.append(level)
         count += len(n)
     return torch.cat(nodes), torch.cat(masks), min(levels)
+
+
+def _check_dtype(model, input_set) -> None:
+    """A ValueError naming ``input_set`` when its images' dtype is not the model's (the
+    dtype of its first parameter): the bounds run in the model's precision."""
+    model_dtype = next((p.dtype for p in model.parameters()), None)
+    set_dtype = getattr(input_set, "dtype", None)
+    if model_dtype is not None and set_dtype is not None and set_dtype != model_dtype:
+        name = str(model_dtype).removeprefix("torch.")
+        raise ValueError(
+            f"input_set: expected images of the model's dtype {model_dtype}, got {set_dtype} "
+            f"(build the set from images.to(torch.{name}), or convert the model)"
+        )
 
 
 class _Search:

@@ -101,10 +101,13 @@ class Region:
         return cls(((lower + upper) / 2)[:, None], ((upper - lower) / 2)[:, None], "point")
 
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Concrete lower and upper bounds ``(B, *S)`` over the domain (no error symbols:
-        ``mid`` has the ``q`` rows of ``rad``)."""
-        low = domain_min(self.mid - self.rad, self.domain)
-        high = -domain_min(-(self.mid + self.rad), self.domain)
+        """Concrete lower and upper bounds ``(B, *S)`` over the domain; rows of ``mid``
+        past the ``q`` of ``rad`` are error-symbol coefficients (a zonotope), each symbol
+        in [−1, 1]."""
+        q = self.rad.shape[1]
+        spread = symbols.l1_rows(self.mid[:, q:]) if self.mid.shape[1] > q else 0.0
+        low = domain_min(self.mid[:, :q] - self.rad, self.domain) - spread
+        high = -domain_min(-(self.mid[:, :q] + self.rad), self.domain) + spread
         return low, high
 
     def to_interval(self) -> Region:
@@ -174,7 +177,7 @@ def propagate(
                 rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0
                 mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
             rad = _apply(op.abs_linear, [v[1] for v in ins], B, q)
-            mid[:, 0] += graph.offset(i)[0]
+            mid = _add_offset(mid, graph.offset(i)[0])
             blocks = None
             if local and len(ins) == 1:
                 blocks = symbols.apply(op, ins[0][2], node.shape)
@@ -212,6 +215,15 @@ def symbol_budget(graph: Graph, q: int) -> int:
     biggest = max(math.prod(n.shape) for n in graph.nodes)
     relus = sum(math.prod(n.shape) for n in graph.nodes if n.op and n.op.kind == "relu")
     return max(0, min(relus, ZONOTOPE_ELEMENTS // biggest - q))
+
+
+def _add_offset(mid: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """``mid (B, q, *S)`` with ``offset (*S)`` added to its constant row; in place unless
+    autograd records it (``mid`` may be a view of a value an earlier layer saved)."""
+    if mid.requires_grad or offset.requires_grad:
+        return torch.cat([mid[:, :1] + offset, mid[:, 1:]], 1)
+    mid[:, 0] += offset
+    return mid
 
 
 def _pad_rows(x: torch.Tensor, rows: int) -> torch.Tensor:

@@ -74,27 +74,57 @@ def is_cell_pool(op: ops.Op) -> bool:
 def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
     """``Σ_i |x[:, i]|`` for ``x (B, r, …)``, a few rows at a time (``vector_norm`` and
     ``abs().sum(1)`` over a middle dimension are 4–14× slower on the CPU)."""
-    out = x[:, :chunk].abs().sum(1)
-    for i in range(chunk, x.shape[1], chunk):
-        out += x[:, i : i + chunk].abs().sum(1)
+    parts = x.split(chunk, 1)  # one backward (a concatenation), not one per slice
+    out = parts[0].abs().sum(1)
+    for part in parts[1:]:
+        out += part.abs().sum(1)
     return out
+
+
+class _Assemble(torch.autograd.Function):
+    """``Σ_i zero-padded parts[i]`` placed at ``index[i]`` of a zero tensor; the backward
+    reads each part's window of the gradient (in-place slice writes would make autograd
+    clone the whole stack once per part)."""
+
+    @staticmethod
+    def forward(ctx, shape, index, *parts):
+        out = parts[0].new_zeros(shape)
+        for where, part in zip(index, parts):
+            out[where] += part
+        ctx.index = index
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        return (None, None, *(grad[where] for where in ctx.index))
+
+
+def assemble(shape, like: torch.Tensor, parts) -> torch.Tensor:
+    """A tensor of ``shape`` (``like``'s dtype and device), zero but for the sum of each
+    ``(index, part)`` of ``parts`` at its ``index`` (a tuple of slices)."""
+    if not parts:
+        return like.new_zeros(shape)
+    index, tensors = zip(*parts)
+    return _Assemble.apply(tuple(shape), index, *tensors)
 
 
 def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
     """``Σ_e |coefficient of symbol e|`` per entry, ``(B, C, H, W)`` like ``like``."""
-    out = torch.zeros_like(like)
-    for b in blocks:
-        out[(slice(None), slice(None), *b.window())] += l1_rows(b.coeff)
-    return out
+    return assemble(
+        like.shape,
+        like,
+        [((slice(None), slice(None), *b.window()), l1_rows(b.coeff)) for b in blocks],
+    )
 
 
 def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row."""
-    out = mid.new_zeros(mid.shape[0], rows, *mid.shape[2:])
-    out[:, : mid.shape[1]] = mid
-    for b in blocks:
-        out[(slice(None), slice(b.start, b.start + b.rows), slice(None), *b.window())] = b.coeff
-    return out
+    parts = [((slice(None), slice(0, mid.shape[1])), mid)]
+    parts += [
+        ((slice(None), slice(b.start, b.start + b.rows), slice(None), *b.window()), b.coeff)
+        for b in blocks
+    ]
+    return assemble((mid.shape[0], rows, *mid.shape[2:]), mid, parts)
 
 
 def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: int):
@@ -105,8 +135,12 @@ def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: in
     cells (a few pixels) and pooled on its own; the ``(B, rows, 1, H, W)`` stack that
     :func:`dense` would build and pad is never formed."""
     B, q = mid.shape[:2]
-    out = mid.new_zeros(B, rows, 1, m.n_v, m.n_h)
-    out[:, :q] = m(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, m.n_v, m.n_h)
+    parts = [
+        (
+            (slice(None), slice(0, q)),
+            m(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, m.n_v, m.n_h),
+        )
+    ]
     (kv, kh), (left, _, top, _) = m.kernel_size, m.pad
     scale = m.scale.to(mid.dtype)
     for b in blocks:
@@ -116,8 +150,15 @@ def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: in
         pad = (x - d0 * kh, d1 * kh - x - w, y - c0 * kv, c1 * kv - y - h)
         coeff = F.pad(b.coeff.reshape(B * r, 1, h, w), pad)
         pooled = F.avg_pool2d(coeff, (kv, kh)) * scale[c0:c1, d0:d1]
-        out[:, b.start : b.start + r, :, c0:c1, d0:d1] = pooled.reshape(B, r, 1, c1 - c0, d1 - d0)
-    return out
+        window = (
+            slice(None),
+            slice(b.start, b.start + r),
+            slice(None),
+            slice(c0, c1),
+            slice(d0, d1),
+        )
+        parts.append((window, pooled.reshape(B, r, 1, c1 - c0, d1 - d0)))
+    return assemble((B, rows, 1, m.n_v, m.n_h), mid, parts)
 
 
 def make(mu: torch.Tensor, start: int) -> list[Block]:

@@ -1,0 +1,297 @@
+"""Campaigns a careless or hostile user cannot break (issue 29, points 1–3 and the campaign's
+cases of point 7): a store refuses another campaign's settings, workers die with their
+parent, a seed that cannot be certified is an ``error`` record, and bad ``--store`` /
+``--timeout`` / ``--scheduler`` arguments exit 2 with one line and nothing written."""
+
+import io
+import json
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from data_gen.perturb import make_perturbations
+from kpstudy import tables
+from kpstudy.campaign import ResultStore, Settings, grid, run_campaign
+from kpstudy.cli import main
+from kpstudy.train import TrainConfig, train
+
+ROOT = Path(__file__).resolve().parents[1]
+BAD_IMAGE = 18  # the tiny dataset's second test image
+
+
+@pytest.fixture(scope="module")
+def study(tiny_dataset, tmp_path_factory):
+    """A copy of the tiny dataset with block perturbations, a CNN and a second checkpoint
+    (the same weights, another epoch count: other bytes)."""
+    data = tmp_path_factory.mktemp("reliability") / "data"
+    shutil.copytree(tiny_dataset, data)
+    make_perturbations(data, "blocks", seeds=2, seed=0, input_size=64)
+    checkpoint = data.parent / "cnn.pt"
+    train(data, checkpoint, TrainConfig(epochs=2, batch_size=4, images=8, seed=1), progress=False)
+    other = data.parent / "other.pt"
+    state = torch.load(checkpoint, weights_only=True)
+    state["epoch"] += 1
+    torch.save(state, other)
+    return data, checkpoint, other
+
+
+def _instances(data):
+    return grid(data, "blocks", alphas=[0.5, 1e4], kappas=[1.0], ms=[1], overlapping=[False])
+
+
+def _settings(checkpoint, data, **kw):
+    return Settings(str(checkpoint), str(data), **{"timeout": 10, "check_samples": 0, **kw})
+
+
+def _cli(capsys, *argv):
+    """``python -m kpstudy campaign ARGV`` in this process: (exit status, stderr)."""
+    try:
+        status = main(["campaign", *map(str, argv)])
+    except SystemExit as exc:
+        status = exc.code
+    return status, capsys.readouterr().err
+
+
+def _one_line(err, *words):
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+# 1. A store made by another checkpoint or settings is refused, not reused.
+
+
+def test_a_store_made_by_another_checkpoint_or_settings_is_refused(study, tmp_path, capsys):
+    data, checkpoint, other = study
+    instances = _instances(data)[:1]
+    store = tmp_path / "s.sqlite"
+    first = run_campaign(instances, store, _settings(checkpoint, data), progress=False)
+    assert len(first) == 1
+    before = store.read_bytes()
+
+    with pytest.raises(ValueError, match=r"store: .*another campaign \(its checkpoint differ"):
+        run_campaign(instances, store, _settings(other, data), progress=False)
+    with pytest.raises(ValueError, match=r"store: .*its timeout 10.0 \(here 11.0\) differ"):
+        run_campaign(instances, store, _settings(checkpoint, data, timeout=11), progress=False)
+    # The issue's case: the same command with another checkpoint, method and timeout.
+    out = tmp_path / "out"
+    status, err = _cli(
+        capsys,
+        *("--checkpoint", other, "--data", data, "--kind", "blocks", "--alphas", 0.5),
+        *("--ms", 1, "--seeds", 1, "--method", "ibp", "--timeout", 999),
+        *("--store", store, "--out", out),
+    )
+    assert status == 2
+    _one_line(err, "store:", "checkpoint", "method 'auto' (here 'ibp')")
+    assert store.read_bytes() == before and not list(tmp_path.glob("out*"))
+    # The same campaign still resumes from it, computing nothing.
+    again = []
+    resumed = run_campaign(
+        instances,
+        store,
+        _settings(checkpoint, data),
+        progress=False,
+        on_record=lambda i, r: again.append(i),
+    )
+    assert again == [] and resumed.to_json() == first.to_json()
+
+
+def test_a_store_of_unknown_provenance_with_records_is_refused(study, tmp_path):
+    data, checkpoint, _ = study
+    legacy = tmp_path / "legacy.sqlite"
+    with sqlite3.connect(legacy) as db:  # a store as written before stores kept provenance
+        db.execute("CREATE TABLE records (key TEXT PRIMARY KEY, record TEXT)")
+        db.execute("INSERT INTO records VALUES ('k', '{\"status\": \"holds\"}')")
+    with pytest.raises(ValueError, match="store: .*unknown provenance"):
+        run_campaign(_instances(data), legacy, _settings(checkpoint, data), progress=False)
+    assert ResultStore(legacy).keys() == {"k"}  # still readable
+
+
+# 2. Workers die with their parent.
+
+
+def _state(pid):
+    """The process state letter of ``pid`` (``None``: gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat[stat.rindex(")") + 2]
+
+
+def _children(pid):
+    """Live child processes of ``pid``: {pid: command line}."""
+    out = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out[int(entry.name)] = command
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc (Linux)")
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_killing_a_campaign_leaves_no_worker_behind(study, tmp_path, signum):
+    data, checkpoint, _ = study
+    command = [
+        *(sys.executable, "-m", "kpstudy", "campaign", "--checkpoint", checkpoint),
+        *("--data", data, "--kind", "blocks", "--alphas", 0.5, 0.7, 1.0, 2.0, 3.0),
+        *("--ms", 1, 2, 3, "--workers", 2, "--store", tmp_path / "s.sqlite"),
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    parent = subprocess.Popen(
+        [str(c) for c in command],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    children = {}
+    try:
+        deadline = time.monotonic() + 120  # two workers importing torch on a busy machine
+        while time.monotonic() < deadline and parent.poll() is None:
+            children = _children(parent.pid)
+            if sum("spawn_main" in c for c in children.values()) == 2:
+                break
+            time.sleep(0.1)
+        assert sum("spawn_main" in c for c in children.values()) == 2, (
+            f"no two workers: {children}; stderr: {parent.stderr.read().decode()[-2000:]}"
+            if parent.poll() is not None
+            else f"no two workers: {children}"
+        )
+        parent.send_signal(signum)
+        parent.wait(30)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and any(_state(p) not in (None, "Z") for p in children):
+            time.sleep(0.1)
+        left = {p: c for p, c in children.items() if _state(p) not in (None, "Z")}
+        assert not left, f"alive after the parent's {signum.name}: {left}"
+        assert "Traceback" not in parent.stderr.read().decode()
+    finally:
+        for pid in [parent.pid, *children]:
+            if _state(pid) not in (None, "Z"):
+                os.kill(pid, signal.SIGKILL)
+        parent.wait(30)
+        parent.stderr.close()
+
+
+# 3. A seed that cannot be certified is an 'error' record; the campaign goes on.
+
+
+@pytest.fixture(scope="module")
+def bad_seed(study):
+    """The study's dataset with keypoint 0 of one seed image outside the image."""
+    data, checkpoint, _ = study
+    bad = data.parent / "bad"
+    shutil.copytree(data, bad)
+    path = bad / "annotations.json"
+    coco = json.loads(path.read_text())
+    annotation = next(a for a in coco["annotations"] if a["image_id"] == BAD_IMAGE)
+    annotation["keypoints"][0:2] = [-40.0, -40.0]
+    path.write_text(json.dumps(coco))
+    return bad, checkpoint
+
+
+def test_a_seed_that_cannot_be_certified_is_stored_as_an_error(bad_seed, tmp_path):
+    data, checkpoint = bad_seed
+    instances = _instances(data)
+    assert len(instances) == 4 and {i.image_id for i in instances} == {9, BAD_IMAGE}
+    settings = _settings(checkpoint, data)
+    store = tmp_path / "s.sqlite"
+    frame = run_campaign(instances, store, settings, progress=False)
+
+    assert len(frame) == len(instances) == len(ResultStore(store).keys())
+    bad = frame[frame.image_id == BAD_IMAGE]
+    good = frame[frame.image_id != BAD_IMAGE]
+    assert list(bad.status) == ["error", "error"]
+    assert all(isinstance(e, str) and "ValueError" in e for e in bad.error)
+    assert set(good.status) <= {"holds", "violated", "unknown"}
+    assert good.error.isna().all()
+
+    # A rerun completes without recomputing anything; retry_errors reruns the errors only.
+    again = []
+    rerun = run_campaign(
+        instances, store, settings, progress=False, on_record=lambda i, r: again.append(i)
+    )
+    assert again == [] and list(rerun.status) == list(frame.status)
+    retried = []
+    run_campaign(
+        instances,
+        store,
+        settings,
+        progress=False,
+        retry_errors=True,
+        on_record=lambda i, r: retried.append(i),
+    )
+    assert {i.image_id for i in retried} == {BAD_IMAGE} and len(retried) == 2
+
+    # The tables count errors apart: never decided, never verified, not in the rates.
+    from_csv = pd.read_csv(io.StringIO(frame.to_csv(index=False)))
+    for records in (frame, from_csv):
+        table = tables.summarise(records, ["alpha"])
+        assert list(table.instances) == [2, 2] and list(table.errors) == [1, 1]
+        decided = table.holds + table.violated + table.unknown
+        assert list(decided) == [1, 1]
+        good_inside = good.groupby("alpha")["seed_inside"].sum().to_numpy()
+        assert list(table.seeds_inside) == list(good_inside)
+    only_errors = tables.summarise(frame[frame.status == "error"][["alpha", "status"]], ["alpha"])
+    assert list(only_errors.errors) == [1, 1] and list(only_errors.holds) == [0, 0]
+
+
+# 7. The campaign's argument errors: one line, exit 2, nothing written.
+
+
+def _base(study):
+    data, checkpoint, _ = study
+    return (
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks"),
+        *("--alphas", 1e4, "--ms", 1, "--seeds", 1, "--timeout", 5),
+    )
+
+
+NOTES = "these are my notes, not a database\n" * 10
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (("--store", "{tmp}/a_file/sub/s.sqlite"), ("store:", "not a directory")),
+        (("--store", "{tmp}/notes.sqlite"), ("store:", "SQLite")),
+        (("--timeout", 0, "--store", "{tmp}/fresh/s.sqlite"), ("timeout:",)),
+        (
+            ("--scheduler", "tcp://127.0.0.1:1", "--store", "{tmp}/fresh/s.sqlite"),
+            ("scheduler:", "tcp://127.0.0.1:1"),
+        ),
+    ],
+    ids=["store_uncreatable", "store_not_sqlite", "timeout_0", "scheduler_unreachable"],
+)
+def test_campaign_argument_errors_are_one_line_and_write_nothing(
+    study, tmp_path, capsys, argv, words
+):
+    (tmp_path / "a_file").write_text("not a folder")
+    (tmp_path / "notes.sqlite").write_text(NOTES)
+    argv = [str(a).format(tmp=tmp_path) for a in argv]
+    status, err = _cli(capsys, *_base(study), *argv)
+    assert status == 2
+    _one_line(err, *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "notes.sqlite"]
+    assert (tmp_path / "a_file").read_text() == "not a folder"
+    assert (tmp_path / "notes.sqlite").read_text() == NOTES

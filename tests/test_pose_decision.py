@@ -1,0 +1,281 @@
+"""kpstudy.pose_bound's exact decision (issue 27, part 2): PnP over every combination of
+region pixels decides where there are few enough, the linearised bound only above that, and
+the tables count which rule decided."""
+
+import io
+import itertools
+import types
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from torch import nn
+
+from kpstudy import pose_bound as pb
+from kpstudy import tables
+from kpstudy.certify import SeedImage
+from kpstudy.geometry import euler_from_matrix, wrap_degrees
+from kpstudy.pnp import solve_pnp, solve_pnp_batch
+from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
+from kpstudy.verify import ConvexHull
+from tests.conftest import IMAGE_SIZE, views
+
+HM = 64  # heatmap side
+
+
+class _Peaks(nn.Module):
+    """A backbone whose heatmaps peak at fixed pixels ``(K, 2)`` (u, v), and at ``moved``
+    instead for images brighter than 0.5 (the hull's second vertex)."""
+
+    heatmap_size = input_size = HM
+
+    def __init__(self, peaks, moved=None):
+        super().__init__()
+        self.peaks = np.asarray(peaks, dtype=np.int64)
+        self.moved = self.peaks if moved is None else np.asarray(moved, dtype=np.int64)
+
+    def forward(self, x):
+        out = torch.zeros(len(x), len(self.peaks), HM, HM)
+        for b, image in enumerate(x):
+            peaks = self.moved if image.mean() > 0.5 else self.peaks
+            for k, (u, v) in enumerate(peaks):
+                out[b, k, v, u] = 1.0
+        return out
+
+
+@pytest.fixture(scope="module")
+def scene(P, K):
+    """A seed image (exact keypoints), its nominal pose and the rounded heatmap pixels."""
+    R, t, V = views(1, 3, K, P)
+    seed = SeedImage(0, V[0], K, P, IMAGE_SIZE)
+    factors = scale_factors(IMAGE_SIZE, HM)
+    centers = np.clip(np.rint(to_input_pixels(V[0], factors)), 0, HM - 1)
+    return seed, R[0], t[0], factors, centers
+
+
+@pytest.fixture(autouse=True)
+def _fresh_caches(monkeypatch):
+    monkeypatch.setattr(pb, "_CACHE", {})
+    monkeypatch.setattr(pb, "_ENUMERATED", {})
+
+
+def _with_regions(monkeypatch, pixels, witnesses=()):
+    """Make the reachability search return ``pixels`` (heatmap ``(u, v)`` per keypoint)."""
+    regions = types.SimpleNamespace(witnesses=list(witnesses), nodes=1, complete=True)
+    pixels = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pixels]
+    monkeypatch.setattr(pb, "_regions", lambda *args: (regions, pixels, 0.0))
+
+
+def _hull():
+    return ConvexHull(torch.stack([torch.zeros(1, 2, 2), torch.ones(1, 2, 2)]))
+
+
+def _brute_force(seed, positions, R, t):
+    """The largest pose error per axis, one OpenCV PnP per combination."""
+    worst = np.zeros(6)
+    for combination in itertools.product(*positions):
+        pose = solve_pnp(seed.points_3d, np.array(combination), seed.K, init=(R, t))
+        if not pose.valid:
+            return np.full(6, np.inf)
+        dr = wrap_degrees(euler_from_matrix(pose.R) - euler_from_matrix(R))
+        worst = np.maximum(worst, np.abs(np.r_[dr, pose.t - t]))
+    return worst
+
+
+def _regions_with(centers, moves):
+    """Each keypoint's rounded pixel, plus the pixels ``centers[k] + offset`` of ``moves``."""
+    pixels = [[c] for c in centers]
+    for k, offset in moves:
+        pixels[k].append(centers[k] + np.asarray(offset))
+    return pixels
+
+
+def _decide(scene, M, eps, kappa=1.0, backbone=None):
+    seed, R, t, _, centers = scene
+    backbone = _Peaks(centers) if backbone is None else backbone
+    return pb.pose_bound(backbone, _hull(), seed, R, t, M, eps, kappa=kappa, random_corners=4)
+
+
+def test_enumeration_proves_what_the_linearised_bound_leaves_open(scene, monkeypatch):
+    seed, R, t, factors, centers = scene
+    pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1)), (9, (-1, -1))])
+    _with_regions(monkeypatch, pixels)
+    exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
+    eps = 1.5 * exact + 1e-6
+    M = np.full((6, 46), 1.0)  # a linearisation far off: bound ≫ ε
+    record = _decide(scene, M, eps)
+    assert np.any(np.asarray(record["pb_bound"]) > eps)  # the linearised rule: unknown
+    assert record["pb_status"] == "holds" and record["pb_rule"] == "enumeration"
+    assert record["pb_combinations"] == 8 and record["pb_counterexample"] is None
+    np.testing.assert_allclose(record["pb_exact"], exact, rtol=1e-5, atol=1e-7)
+    # κ scales the enumerated error as it scales the bound.
+    strict = _decide(scene, M, eps, kappa=2.0)
+    assert strict["pb_status"] == "unknown" and strict["pb_rule"] == "enumeration"
+
+
+def _far_tolerance(scene):
+    """Ξ that holds the seed's rounded pixels' pose but not the pose with keypoint 0 moved
+    by 8 heatmap pixels (on one axis), and the index of that axis."""
+    seed, R, t, factors, centers = scene
+    near = [to_image_pixels(c[None], factors) for c in centers]
+    far = list(near)
+    far[0] = to_image_pixels(centers[0][None] + [8, 0], factors)
+    e_near = pb.enumerated_pose_error(seed, near, R, t)
+    e_far = pb.enumerated_pose_error(seed, far, R, t)
+    axis = int(np.argmax(e_far / e_near))
+    assert e_far[axis] > 2 * e_near[axis]
+    eps = 2 * np.maximum(e_near, e_far)
+    eps[axis] = 0.5 * (e_near[axis] + e_far[axis])
+    return eps, axis
+
+
+def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch):
+    centers = scene[-1]
+    eps, axis = _far_tolerance(scene)
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    M = np.zeros((6, 46))  # a linearisation that says nothing moves: bound 0, 'holds'
+    record = _decide(scene, M, eps)
+    assert record["pb_bound"] == [0.0] * 6
+    assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
+    assert record["pb_exact"][axis] > eps[axis]
+    # The same pixel reached by a witness image (λ = 1: its argmax moves there) refutes.
+    moved = centers.copy()
+    moved[0] += [8, 0]
+    witnesses = [{0: torch.tensor([1.0], dtype=torch.float64)}]
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]), witnesses)
+    refuted = _decide(scene, M, eps, backbone=_Peaks(centers, moved))
+    assert refuted["pb_status"] == "violated" and refuted["pb_rule"] == "witness"
+    assert refuted["pb_counterexample"] == [1.0] and refuted["pb_exact"] is None
+
+
+def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
+    real = solve_pnp_batch
+
+    def flag_the_moved_one(P, V, K, init, **kw):
+        pose = real(P, V, K, init, **kw)
+        pose.valid = pose.valid & (np.abs(V[:, 0] - V[0, 0]).max(-1) < 1e-9)
+        return pose
+
+    _, _, _, _, centers = scene
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (1, 0))]))
+    monkeypatch.setattr(pb, "solve_pnp_batch", flag_the_moved_one)
+    record = _decide(scene, np.zeros((6, 46)), np.full(6, 1e3))
+    assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
+    assert record["pb_exact"] == [np.inf] * 6
+
+
+def test_above_the_limit_the_linearised_bound_decides(scene, monkeypatch):
+    centers = scene[-1]
+    eps, _ = _far_tolerance(scene)  # enumerated, the far combination leaves it open
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)
+    record = _decide(scene, np.zeros((6, 46)), eps)
+    assert record["pb_status"] == "holds" and record["pb_rule"] == "linearised"
+    assert record["pb_combinations"] == 2 and record["pb_exact"] is None
+    open_ = _decide(scene, np.full((6, 46), 1.0), eps)
+    assert open_["pb_status"] == "unknown" and open_["pb_rule"] == "linearised"
+    # The default limit: 5²³ combinations are not enumerated, and are recorded as a float.
+    monkeypatch.setattr(pb, "MAX_COMBINATIONS", 10**6)
+    offsets = [(1, 0), (-1, 0), (0, 1), (0, -1)]
+    _with_regions(monkeypatch, _regions_with(centers, [(k, o) for k in range(23) for o in offsets]))
+    huge = _decide(scene, np.zeros((6, 46)), eps)
+    assert huge["pb_status"] == "holds" and huge["pb_rule"] == "linearised"
+    assert huge["pb_combinations"] == float(5**23) and isinstance(huge["pb_combinations"], float)
+    assert huge["pb_exact"] is None and not pb._ENUMERATED
+
+
+@pytest.mark.parametrize("chunk", [1, 5, 10**5])
+def test_enumeration_equals_a_brute_force_loop(scene, monkeypatch, chunk):
+    seed, R, t, factors, centers = scene
+    rng = np.random.default_rng(chunk)
+    moves = [(k, tuple(rng.integers(-3, 4, 2))) for k in (2, 2, 7, 11, 11, 20)]
+    pixels = _regions_with(centers, moves)  # 3 · 2 · 3 · 2 = 36 combinations (or fewer)
+    positions = [to_image_pixels(np.unique(np.array(p), axis=0), factors) for p in pixels]
+    brute = _brute_force(seed, positions, R, t)
+    sizes = []
+    real = solve_pnp_batch
+
+    def counted(P, V, K, init, **kw):
+        sizes.append(len(V))
+        np.testing.assert_array_equal(init[0], np.broadcast_to(R, (len(V), 3, 3)))
+        np.testing.assert_array_equal(init[1], np.broadcast_to(t, (len(V), 3)))
+        return real(P, V, K, init, **kw)
+
+    monkeypatch.setattr(pb, "solve_pnp_batch", counted)
+    exact = pb.enumerated_pose_error(seed, positions, R, t, chunk=chunk)
+    total = int(np.prod([len(p) for p in positions]))
+    assert sum(sizes) == total and max(sizes) <= chunk
+    np.testing.assert_allclose(exact, brute, rtol=1e-5, atol=1e-7)
+    # Through pose_bound, in chunks of the module's size.
+    monkeypatch.setattr(pb, "ENUMERATION_CHUNK", chunk)
+    _with_regions(monkeypatch, [np.unique(np.array(p), axis=0) for p in pixels])
+    record = _decide(scene, np.zeros((6, 46)), 2 * brute + 1e-6)
+    assert record["pb_combinations"] == total and record["pb_rule"] == "enumeration"
+    np.testing.assert_allclose(record["pb_exact"], brute, rtol=1e-5, atol=1e-7)
+
+
+def test_bad_chunks_and_keypoints_are_named(scene):
+    seed, R, t, _, _ = scene
+    with pytest.raises(ValueError, match="^chunk"):
+        pb.enumerated_pose_error(seed, [np.zeros((1, 2))] * 23, R, t, chunk=0)
+    with pytest.raises(ValueError, match=r"^keypoints\[1\]"):
+        pb.enumerated_pose_error(seed, [np.zeros((1, 2)), np.zeros((0, 2))], R, t)
+
+
+def _records():
+    rows = []
+    for image_id, (pb_status, rule, exact) in enumerate(
+        [
+            ("holds", "enumeration", [1.0] * 6),
+            ("unknown", "enumeration", [1.0, 30.0, 1.0, 1.0, 1.0, 1.0]),
+            ("violated", "witness", None),
+            ("holds", "linearised", None),
+            ("unknown", "enumeration", [np.inf] * 6),
+        ]
+    ):
+        rows.append(
+            dict(
+                kind="brightness",
+                level=1.0,
+                image_id=image_id,
+                alpha=1.0,
+                kappa=1.0,
+                status="violated",
+                time=0.1,
+                seed_inside=True,
+                counterexample=[0.0],
+                pb_status=pb_status,
+                pb_rule=rule,
+                pb_time=1.0,
+                pb_bound=[2.0] * 6,
+                pb_exact=exact,
+                pb_nonlinear=[1.0] * 6,
+            )
+        )
+    return pd.DataFrame(rows)
+
+
+def test_tables_count_the_rules_and_label_the_linearised_bound():
+    stored = _records()
+    from_csv = pd.read_csv(io.StringIO(stored.to_csv(index=False)))
+    for records in (stored, from_csv):
+        row = tables.t_global(records).iloc[0]
+        assert (row.pb_holds, row.pb_violated, row.pb_unknown) == (2, 1, 2)
+        assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 3, 1)
+        assert row.pb_enumeration_holds == 1
+        exact = tables.pose_bound_ratios(records, "pb_exact")
+        assert exact.image_id.tolist() == [0, 1, 4]
+        np.testing.assert_allclose(exact.pitch, [0.1, 3.0, np.inf])
+        fig = tables.plot_pose_bounds(records, "T-global")
+        ax = fig.axes[0]
+        labels = ax.get_legend_handles_labels()[1]
+        assert "linearised bound" in labels and "certified" not in ax.get_ylabel()
+        assert any(label.startswith("certified") for label in labels)
+    # Records from before pb_rule: violated by a witness, the rest by the linearised bound.
+    old = stored.drop(columns=["pb_rule", "pb_exact"])
+    row = tables.t_global(old).iloc[0]
+    assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 0, 4)
+    assert tables.pose_bound_ratios(old, "pb_exact").empty
+    labels = tables.plot_pose_bounds(old, "old").axes[0].get_legend_handles_labels()[1]
+    assert "linearised bound" in labels and not any(s.startswith("certified") for s in labels)
