@@ -6,7 +6,8 @@ such images), :func:`kpstudy.verify.bound_profile` bounds every node of each
 backbone (``--checkpoint NAME=PATH …``, e.g. the natural CNN and the verification-friendly
 one) over the exact hull with each method and compares the bound width with the range
 reached by sampled hull images (ratio 1 = exact), and the ReLUs each method leaves
-unstable with those whose sign the samples see change. Object and block hulls are
+unstable with those whose sign the samples see change (``--scales``: also sub-hulls shrunk
+towards the seed image, as a branch and bound's nodes are). Object and block hulls are
 profiled for every ``--m`` and overlap; every checkpoint sees the same hulls. Prints one
 JSON line: per run (checkpoint × hull) and method, the seconds, ``heatmap_ratio`` (the
 output's ratio) and, per ReLU and for the output, ``ratio_median``, ``unstable_bound`` and
@@ -54,7 +55,16 @@ def main(argv=None):
     ap.add_argument("--seed-index", type=int, default=0, help="which seed image of the set")
     ap.add_argument("--methods", nargs="+", default=["ibp", "forward", "zonotope"])
     ap.add_argument("--samples", type=int, default=500)
+    ap.add_argument(
+        "--scales",
+        type=float,
+        nargs="+",
+        default=[1.0],
+        help="also profile sub-hulls shrunk towards the seed image by these factors in (0, 1]",
+    )
     args = ap.parse_args(argv)
+    if not all(0 < v <= 1 for v in args.scales):
+        ap.error(f"--scales: expected factors in (0, 1], got {args.scales}")
     from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
 
     rows = load_perturbations(args.data, args.kind)["images"]
@@ -84,22 +94,25 @@ def main(argv=None):
         for hull_args in hulls:
             V = hull_args["V"]
             x = normalise(np.stack([resize_to_input(v, net.input_size) for v in V]))
-            hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
-            run = {
-                "checkpoint": name,
-                **{k: hull_args[k] for k in ("image_id", "m", "overlapping")},
-            }
-            for method in args.methods:
-                start = time.perf_counter()
-                profile = bound_profile(net, hull, method=method, samples=args.samples)
-                keep = [r for r in profile if r["op"] == "ReLU"] + profile[-1:]
-                run[method] = {
-                    "seconds": time.perf_counter() - start,
-                    "contained": all(r["contained"] for r in profile),
-                    "heatmap_ratio": profile[-1]["ratio_median"],
-                    "layers": [{k: r.get(k) for k in COLUMNS} for r in keep],
+            full = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+            for scale in args.scales:
+                hull = ConvexHull(torch.cat([full[:1], full[:1] + scale * (full[1:] - full[:1])]))
+                run = {
+                    "checkpoint": name,
+                    **{k: hull_args[k] for k in ("image_id", "m", "overlapping")},
+                    "scale": scale,
                 }
-            out["runs"].append(run)
+                for method in args.methods:
+                    start = time.perf_counter()
+                    profile = bound_profile(net, hull, method=method, samples=args.samples)
+                    keep = [r for r in profile if r["op"] == "ReLU"] + profile[-1:]
+                    run[method] = {
+                        "seconds": time.perf_counter() - start,
+                        "contained": all(r["contained"] for r in profile),
+                        "heatmap_ratio": profile[-1]["ratio_median"],
+                        "layers": [{k: r.get(k) for k in COLUMNS} for r in keep],
+                    }
+                out["runs"].append(run)
     return emit("bound_profile", out)
 
 

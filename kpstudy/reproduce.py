@@ -48,6 +48,7 @@ FRIENDLY = dict(
     certified_scale=0.05,
     certified_start=8,
     certified_ramp=4,
+    certified_method="forward",
 )
 #: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`.
 SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
@@ -270,7 +271,7 @@ def train_models(
     import torch
 
     from data_gen.dataset import load_coco
-    from kpstudy.train import TrainConfig, train
+    from kpstudy.train import TrainConfig, config_of, train
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
@@ -290,7 +291,7 @@ def train_models(
 
     def made_by(file: Path, config: TrainConfig) -> bool:
         state = torch.load(file, map_location="cpu", weights_only=True)
-        return state["config"] == asdict(config) and state["dataset"]["config"] == dataset
+        return config_of(state) == config and state["dataset"]["config"] == dataset
 
     for name, config in configs.items():
         path = paths[name]

@@ -356,7 +356,7 @@ def load_checkpoint(path) -> tuple[nn.Module, dict]:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict) or state.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} file")
-        config = TrainConfig(**state["config"])
+        config = config_of(state)
         backbone = build_backbone(config.backbone, len(state["keypoint_names"]))
         backbone.load_state_dict(state["model"])
     except Exception as exc:
@@ -366,12 +366,18 @@ def load_checkpoint(path) -> tuple[nn.Module, dict]:
     return backbone.eval(), state
 
 
+def config_of(state: dict) -> TrainConfig:
+    """The :class:`TrainConfig` of checkpoint ``state``; one written before
+    ``certified_method`` existed trained its bound term with forward bounds."""
+    return TrainConfig(**{"certified_method": "forward", **state["config"]})
+
+
 def _resume(out: Path, config: TrainConfig):
     if not out.exists():
         return None
     try:
         state = torch.load(out, map_location="cpu", weights_only=True)
-        saved = TrainConfig(**state["config"])
+        saved = config_of(state)
     except Exception as exc:
         raise ValueError(f"out: {out} exists and is not a readable checkpoint ({exc})") from exc
     differ = [

@@ -18,7 +18,7 @@ from kpstudy.certified import (
     robust_heatmap_loss,
 )
 from kpstudy.models import build_backbone
-from kpstudy.train import TrainConfig, heatmap_loss, load_checkpoint, train
+from kpstudy.train import TrainConfig, config_of, heatmap_loss, load_checkpoint, train
 from kpstudy.verify import Box, ConvexHull, output_bounds
 from kpstudy.verify.bounds import Region, propagate
 from kpstudy.verify.graph import trace
@@ -254,7 +254,7 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
 
     backbone, state = load_checkpoint(SHIPPED)
     card = json.loads(SHIPPED.with_suffix(".json").read_text())
-    assert {k: state["config"][k] for k in FRIENDLY} == FRIENDLY
+    assert {k: getattr(config_of(state), k) for k in FRIENDLY} == FRIENDLY
     assert card["recipe"] == state["config"] and "optimizer" not in state
     with torch.no_grad():
         h = backbone(probe_input()).double()
