@@ -418,10 +418,26 @@ def run_notebooks(
                 progress_bar=False,
                 kernel_name="python3",
                 config=_ipc_kernel(sockets),
+                kernel_manager_class=kernel_manager(done / f"{name}.kernel.log"),
             )
         write_text_atomic(stamp, json.dumps(signature, indent=1) + "\n")
         executed.append(target)
     return executed
+
+
+def kernel_manager(log: Path):
+    """A jupyter_client ``AsyncKernelManager`` class whose kernel process writes its own
+    stderr (IPKernel's log: e.g. its messages when Ctrl-C stops a notebook) to the file
+    ``log`` instead of the terminal. Cell outputs travel over the kernel's sockets into the
+    executed notebook as before."""
+    from jupyter_client import AsyncKernelManager
+
+    class LoggedKernelManager(AsyncKernelManager):
+        async def start_kernel(self, **kw):  # kw reach subprocess.Popen
+            with open(log, "ab") as stream:  # the kernel keeps its own copy of the file
+                return await super().start_kernel(**kw, stderr=stream)
+
+    return LoggedKernelManager
 
 
 def _ipc_kernel(folder: str):
