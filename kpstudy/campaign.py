@@ -33,7 +33,6 @@ import os
 import signal
 import sqlite3
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -46,7 +45,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from kpstudy.io import source_fingerprint
+from kpstudy.io import check_output_file, source_fingerprint
 
 __all__ = [
     "Instance",
@@ -201,9 +200,9 @@ class ResultStore:
     provenance : dict, optional
         What makes this campaign's records (:func:`provenance`). Given, an existing store
         made by another provenance, or holding records of unknown provenance, is refused
-        (``ValueError`` naming ``store``), as is a path that is not a SQLite store or
-        cannot be created. ``None`` opens the store read-only (:meth:`keys`,
-        :meth:`frame`), whatever made it.
+        (``ValueError`` naming ``store``), as is a path that is not a SQLite store; one
+        that cannot be created raises :func:`kpstudy.io.check_output_file`'s ``OSError``.
+        ``None`` opens the store read-only (:meth:`keys`, :meth:`frame`), whatever made it.
     """
 
     def __init__(self, path, provenance: dict | None = None) -> None:
@@ -212,7 +211,7 @@ class ResultStore:
         if self.path.exists():
             self._check_existing()
         elif provenance is not None:
-            _check_creatable(self.path, "store")
+            check_output_file(self.path, "store")
 
     @contextlib.contextmanager
     def _db(self, readonly: bool = False):
@@ -367,22 +366,6 @@ def _differences(stored: dict, mine: dict) -> str:
     ]
     out = out or ["provenance"]
     return f"its {', '.join(out)} {'differs' if len(out) == 1 else 'differ'}"
-
-
-def _check_creatable(path: Path, name: str) -> None:
-    """Refuse ``path`` (``ValueError`` naming ``name``) when it cannot be created: the
-    nearest existing folder above it must take a new file (tried with a temporary file,
-    removed at once)."""
-    existing = path.parent
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"{name}: cannot create {path}: {existing} is not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=existing):
-            pass
-    except OSError as exc:
-        raise ValueError(f"{name}: cannot create {path} ({exc.strerror or exc})") from exc
 
 
 def run_campaign(

@@ -190,37 +190,19 @@ def _train(args) -> None:
     import torch
 
     from kpstudy.io import check_output_file
-    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig, train
+    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig, check_device, train
 
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"threads: expected a positive integer, got {args.threads}")
         torch.set_num_threads(args.threads)
-    _check_device(args.device)
+    check_device(args.device)
     check_output_file(args.out, "out")  # before an epoch of work, not after it
     if args.certified_weight is None:
         args.certified_weight = CERTIFIED_WEIGHT if args.certified else 0.0
     config = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
     state = train(args.data, args.out, config, device=args.device)
     print(json.dumps(state["history"][-1]))
-
-
-def _check_device(device: str) -> None:
-    """A ValueError naming ``device`` unless torch can allocate on it (``'cpu'``,
-    ``'cuda'``, ``'cuda:1'``, …)."""
-    import torch
-
-    available = "cpu" + (", cuda" if torch.cuda.is_available() else "")
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device: expected a torch device ({available}), got {device!r}") from None
-    try:
-        torch.empty(0, device=parsed)
-    except (RuntimeError, AssertionError) as exc:  # a CPU-only build raises AssertionError
-        raise ValueError(
-            f"device: expected an available torch device ({available}), got {device!r} ({exc})"
-        ) from None
 
 
 def _evaluate(args) -> None:
@@ -246,11 +228,11 @@ def _campaign(args) -> None:
     any work, with nothing written."""
     from tqdm.auto import tqdm
 
-    from kpstudy.campaign import Settings, _check_creatable, grid, run_campaign
-    from kpstudy.io import write_table
+    from kpstudy.campaign import Settings, grid, run_campaign
+    from kpstudy.io import check_output_file, write_table
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
-        _check_creatable(Path(f"{args.out}.csv"), "out")
+        check_output_file(Path(f"{args.out}.csv"), "out")
     settings = Settings(
         args.checkpoint,
         args.data,

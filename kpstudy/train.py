@@ -226,11 +226,7 @@ def train(
     backbone = build_backbone(config.backbone, len(train_set.keypoint_names))
     if state is not None and state["dataset"] != dataset:
         raise ValueError(f"data: {data_dir} is not the dataset checkpoint {out} was trained on")
-    try:
-        device = torch.device(device)
-        torch.empty(0, device=device)
-    except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"device: expected an available torch device, got {device!r}") from exc
+    device = check_device(device)
     backbone = backbone.to(device, memory_format=torch.channels_last)
     optimiser = torch.optim.AdamW(
         backbone.parameters(), lr=config.lr, weight_decay=config.weight_decay
@@ -364,6 +360,23 @@ def load_checkpoint(path) -> tuple[nn.Module, dict]:
     if not _finite_state(state["model"]):
         raise ValueError(f"checkpoint: {path} holds non-finite weights (NaN or inf); retrain it")
     return backbone.eval(), state
+
+
+def check_device(device) -> torch.device:
+    """``torch.device(device)`` if torch can allocate on it (``'cpu'``, ``'cuda'``,
+    ``'cuda:1'``, …), else a ValueError naming ``device``."""
+    available = "cpu" + (", cuda" if torch.cuda.is_available() else "")
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device: expected a torch device ({available}), got {device!r}") from None
+    try:
+        torch.empty(0, device=parsed)
+    except (RuntimeError, AssertionError) as exc:  # a CPU-only build raises AssertionError
+        raise ValueError(
+            f"device: expected an available torch device ({available}), got {device!r} ({exc})"
+        ) from None
+    return parsed
 
 
 def config_of(state: dict) -> TrainConfig:
