@@ -102,6 +102,9 @@ class Settings:
     pose_bound_timeout, pose_bound_stride, pose_bound_method :
         The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`):
         seconds per hull (``None`` skips it), cell side, bound method.
+    pose_bound_nodes, pose_bound_start_depth :
+        Its node budget per hull (``None``: the seconds alone decide; with a budget the
+        seconds only cap a slow machine) and the hull's splits before the first bounds.
     """
 
     checkpoint: str
@@ -113,6 +116,8 @@ class Settings:
     pose_bound_timeout: float | None = None
     pose_bound_stride: int = 1
     pose_bound_method: str = "forward"
+    pose_bound_nodes: int | None = None
+    pose_bound_start_depth: int = 0
 
 
 def grid(
@@ -569,6 +574,8 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
         pose_bound_timeout=settings.pose_bound_timeout,
         pose_bound_stride=settings.pose_bound_stride,
         pose_bound_method=settings.pose_bound_method,
+        pose_bound_nodes=settings.pose_bound_nodes,
+        pose_bound_start_depth=settings.pose_bound_start_depth,
     )
     clipped = 0.0
     if instance.kind in GLOBAL_KINDS:
@@ -647,7 +654,16 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
+    nodes, depth = settings.pose_bound_nodes, settings.pose_bound_start_depth
+    if nodes is not None and (isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1):
+        raise ValueError(f"pose_bound_nodes: expected None or an integer >= 1, got {nodes!r}")
+    from kpstudy.verify.reachable import MAX_START_DEPTH
     from kpstudy.verify.reachable import METHODS as REGION_METHODS
+
+    if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= MAX_START_DEPTH:
+        raise ValueError(
+            f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
+        )
 
     if settings.pose_bound_method not in REGION_METHODS:
         raise ValueError(

@@ -118,6 +118,8 @@ def certify(
     pose_bound_timeout: float | None = None,
     pose_bound_stride: int = 1,
     pose_bound_method: str = "forward",
+    pose_bound_nodes: int | None = None,
+    pose_bound_start_depth: int = 0,
 ) -> dict:
     """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
 
@@ -145,6 +147,9 @@ def certify(
         Its cell side in heatmap pixels (1: the argmax pixel itself).
     pose_bound_method : str
         Its bound method (``'forward'`` or ``'zonotope'``).
+    pose_bound_nodes, pose_bound_start_depth : int
+        Its node budget (``None``: the seconds alone) and the hull's splits before the
+        first bounds (:func:`kpstudy.pose_bound.pose_bound`'s ``max_nodes``, ``start_depth``).
 
     Returns
     -------
@@ -242,6 +247,8 @@ def certify(
                 stride=pose_bound_stride,
                 timeout=pose_bound_timeout,
                 method=pose_bound_method,
+                max_nodes=pose_bound_nodes,
+                start_depth=pose_bound_start_depth,
                 sample_seed=sample_seed,
             )
         )

@@ -65,6 +65,14 @@ def main(argv=None) -> int:
     tr.add_argument("--seed", type=int, default=default.seed)
     tr.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     tr.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    tr.add_argument(
+        "--schedule", default=default.schedule, help="onecycle (default) or constant learning rate"
+    )
+    tr.add_argument(
+        "--init",
+        dest="init_checkpoint",
+        help="start from this checkpoint's weights (a fine-tuning stage)",
+    )
     cert = tr.add_argument_group("certified training (a bound term over random hulls)")
     cert.add_argument(
         "--certified",
@@ -86,6 +94,12 @@ def main(argv=None) -> int:
         type=float,
         default=default.certified_scale,
         help="the hulls' final size, a fraction of the full hull (SABR-style sub-hulls)",
+    )
+    cert.add_argument(
+        "--certified-scale-from",
+        type=float,
+        default=default.certified_scale_from,
+        help="the hulls' size when the term starts (default 0: the image itself)",
     )
     cert.add_argument(
         "--certified-method",
@@ -139,6 +153,17 @@ def main(argv=None) -> int:
         default="forward",
         help="bounds of the pose-bound method's regions: forward, zonotope or ibp",
     )
+    ca.add_argument(
+        "--pose-bound-nodes",
+        type=int,
+        help="node budget of the pose-bound method per hull (the same verdicts on any machine)",
+    )
+    ca.add_argument(
+        "--pose-bound-start-depth",
+        type=int,
+        default=0,
+        help="splits of each hull before the pose-bound method's first bounds (default 0)",
+    )
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
     ca.add_argument("--out", help="also write the records as OUT.csv and OUT.md")
@@ -190,7 +215,14 @@ def _train(args) -> None:
     import torch
 
     from kpstudy.io import check_output_file
-    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig, check_device, train
+    from kpstudy.train import (
+        CERTIFIED_WEIGHT,
+        TrainConfig,
+        check_device,
+        load_checkpoint,
+        train,
+        weights_digest,
+    )
 
     if args.threads is not None:
         if args.threads < 1:
@@ -200,8 +232,14 @@ def _train(args) -> None:
     check_output_file(args.out, "out")  # before an epoch of work, not after it
     if args.certified_weight is None:
         args.certified_weight = CERTIFIED_WEIGHT if args.certified else 0.0
+    args.init = None
+    if args.init_checkpoint is not None:
+        try:
+            args.init = weights_digest(load_checkpoint(args.init_checkpoint)[1]["model"])
+        except (FileNotFoundError, ValueError) as exc:  # it names "checkpoint"
+            raise ValueError(f"init: {str(exc).removeprefix('checkpoint: ')}") from None
     config = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
-    state = train(args.data, args.out, config, device=args.device)
+    state = train(args.data, args.out, config, init=args.init_checkpoint, device=args.device)
     print(json.dumps(state["history"][-1]))
 
 
@@ -240,6 +278,8 @@ def _campaign(args) -> None:
         args.timeout,
         pose_bound_timeout=args.pose_bound_timeout,
         pose_bound_method=args.pose_bound_method,
+        pose_bound_nodes=args.pose_bound_nodes,
+        pose_bound_start_depth=args.pose_bound_start_depth,
     )
     instances = grid(
         args.data,

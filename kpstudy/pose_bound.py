@@ -22,8 +22,9 @@ go and decides the pose error from that (DESIGN.md §4, issues 7 and 27):
    hull;
 5. PnP is re-solved at the extreme and at random combinations of region pixels (the
    nonlinear check, ``pb_nonlinear``: how far the linearisation is off);
-6. the argmax → PnP pose is computed at every witness image of the reachability search:
-   one outside Ξ is a real counterexample.
+6. the argmax → PnP pose is computed at the seed, the hull's vertices and random images
+   first (one outside Ξ is a real counterexample, and then no node is bounded), and at
+   every witness image of the reachability search.
 
 Every PnP here is Levenberg–Marquardt from the nominal pose
 (:func:`kpstudy.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
@@ -187,6 +188,8 @@ def pose_bound(
     stride: int = 1,
     timeout: float = 10.0,
     method: str = "forward",
+    max_nodes: int | None = None,
+    start_depth: int = 0,
     random_corners: int = 64,
     sample_seed: int = 0,
 ) -> dict:
@@ -219,6 +222,13 @@ def pose_bound(
     method : {'forward', 'zonotope', 'ibp'}
         Its bounds: ``'zonotope'`` gives far smaller regions on a trained CNN, at tens
         of seconds per node on 2 CPU cores (``'forward'``: a fraction of a second).
+    max_nodes : int, optional
+        Most branch-and-bound nodes of the search: a budget that gives the same regions on
+        any machine (``timeout`` then only caps a slow one, and ``pb_stopped`` says which
+        fired).
+    start_depth : int
+        Splits of the hull before the first bounds
+        (:func:`kpstudy.verify.reachable_argmax`).
     random_corners : int
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
@@ -235,7 +245,10 @@ def pose_bound(
         degrees then metres, ``inf`` if some pose is not valid) when they were enumerated,
         else None; ``pb_nonlinear`` (6: the largest PnP pose error found at region
         corners; ``inf`` if PnP flags a corner's pose as not valid); ``pb_time`` (s, the
-        search and the enumeration each counted in full); ``pb_nodes``; ``pb_complete``
+        search and the enumeration each counted in full); ``pb_nodes``; ``pb_stopped``
+        (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the seed,
+        a vertex or a random image of the hull was already a counterexample and no node
+        was bounded, or None); ``pb_complete``
         (possible = reached); ``pb_pixels`` (possible pixels per keypoint);
         ``pb_counterexample`` (λ of the witness image, or None); ``pb_stride``;
         ``pb_method``.
@@ -248,9 +261,16 @@ def pose_bound(
     V = np.asarray(seed.keypoints, dtype=np.float64)
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
     key = (id(backbone), hashlib.sha1(hull.vertices.numpy().tobytes()).hexdigest())
-    key += (centers.tobytes(), int(stride), float(timeout), method)
+    # Witnesses first: the seed, the hull's corners and random images. One whose argmax
+    # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
+    early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
+    skipped = early is not None
+    if skipped:
+        max_nodes = 0
+    search = dict(method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth)
+    key += (centers.tobytes(), int(stride), repr(sorted(search.items())))
     before = time.perf_counter() - start
-    regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, timeout, method)
+    regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, search)
     start = time.perf_counter()  # the search is counted once, cached or not
     positions = [to_image_pixels(p, factors) for p in pixels]  # (n_k, 2) image pixels
     deviations = [p - v for p, v in zip(positions, V)]
@@ -265,16 +285,12 @@ def pose_bound(
     nonlinear = _pose_errors(seed, V_corner, R, t).max(0)
 
     # Witnesses are real images: their argmax pose decides 'violated'.
-    points = [torch.zeros(hull.n, dtype=torch.float64)]
-    points += [lam for w in regions.witnesses for lam in w.values()]
-    lam = torch.unique(torch.stack(points), dim=0)
-    with torch.no_grad():
-        uv = argmax_keypoints(backbone(hull.image(lam)).float()).double().numpy()
-    errors = _pose_errors(seed, to_image_pixels(uv, factors), R, t)
-    outside = np.flatnonzero(~np.all(errors <= eps, axis=1))
+    if early is None:
+        points = [lam for w in regions.witnesses for lam in w.values()]
+        early = _outside(backbone, hull, seed, R, t, eps, points) if points else None
     exact, enumeration_time = None, 0.0
-    if outside.size:
-        status, rule, counterexample = "violated", "witness", lam[outside[0]].tolist()
+    if early is not None:
+        status, rule, counterexample = "violated", "witness", early
     elif combinations <= MAX_COMBINATIONS:
         # Exact over the product of the regions; a combination outside Ξ keeps it open,
         # whatever the linearised bound says.
@@ -293,6 +309,7 @@ def pose_bound(
         "pb_nonlinear": nonlinear.tolist(),
         "pb_time": before + search_time + enumeration_time + time.perf_counter() - start,
         "pb_nodes": regions.nodes,
+        "pb_stopped": "witness" if skipped else regions.stats["stopped"],
         "pb_complete": regions.complete,
         "pb_pixels": [len(p) for p in pixels],
         "pb_counterexample": counterexample,
@@ -301,10 +318,29 @@ def pose_bound(
     }
 
 
+def _first_points(hull, sample_seed: int, samples: int = 64) -> list[torch.Tensor]:
+    """λ of the seed image, the hull's other vertices and ``samples`` random images."""
+    corners = torch.eye(hull.n, dtype=torch.float64)
+    random = hull.sample(samples, sample_seed).to(torch.float64)
+    return [torch.zeros(hull.n, dtype=torch.float64), *corners, *random]
+
+
+def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
+    """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies outside
+    Ξ (half-widths ``eps``), else None."""
+    lam = torch.unique(torch.stack(list(points)), dim=0)
+    factors = scale_factors(seed.image_size, backbone.heatmap_size)
+    with torch.no_grad():
+        uv = argmax_keypoints(backbone(hull.image(lam)).float()).double().numpy()
+    errors = _pose_errors(seed, to_image_pixels(uv, factors), R, t)
+    outside = np.flatnonzero(~np.all(errors <= eps, axis=1))
+    return lam[outside[0]].tolist() if outside.size else None
+
+
 _CACHE: dict = {}
 
 
-def _regions(key, backbone, hull, centers, stride: int, timeout: float, method: str):
+def _regions(key, backbone, hull, centers, stride: int, search: dict):
     """Possible pixels of each keypoint over ``hull`` and the search's seconds; the last
     few are kept, since the instances of one hull (its α, κ cells) follow each other.
     An entry holds its backbone, so the ``id`` in its key cannot be reused meanwhile."""
@@ -314,7 +350,7 @@ def _regions(key, backbone, hull, centers, stride: int, timeout: float, method: 
         pooling = keypoint_pooling(centers, np.full_like(centers, (stride - 1) // 2), (hm, hm))
         proxy = build_proxy(backbone, pooling, centers).eval()
         sizes = proxy.spec.group_sizes
-        regions = reachable_argmax(proxy, hull, sizes, method=method, timeout=timeout)
+        regions = reachable_argmax(proxy, hull, sizes, **search)
         pixels = region_pixels(regions, pooling, hm)
         while len(_CACHE) >= 4:
             _CACHE.pop(next(iter(_CACHE)))

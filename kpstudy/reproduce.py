@@ -31,16 +31,16 @@ import io
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
-#: The verification-friendly CNN's recipe (``TrainConfig`` fields beside the profile's
-#: seed): natural epochs first, then the bound term over sub-hulls that grow to 5 % of
-#: the hulls' size (docs/findings.md says how it was chosen).
+#: The verification-friendly CNN's recipe, first stage (``TrainConfig`` fields beside the
+#: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
+#: 5 % of the hulls' size (docs/findings.md says how it was chosen).
 FRIENDLY = dict(
     backbone="cnn_affine",
     epochs=20,
@@ -50,7 +50,24 @@ FRIENDLY = dict(
     certified_ramp=4,
     certified_method="forward",
 )
-#: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`.
+#: Its second stage, from the first stage's weights: the verifier's own zonotope over
+#: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, at a constant
+#: learning rate (sub-hulls of about half the trained scale become exact).
+FRIENDLY_FINETUNE = dict(
+    backbone="cnn_affine",
+    epochs=2,
+    lr=3e-4,
+    schedule="constant",
+    certified_weight=2.0,
+    certified_hulls=1,
+    certified_start=0,
+    certified_ramp=2,
+    certified_scale_from=0.1,
+    certified_scale=0.5,
+    certified_method="zonotope",
+)
+#: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`
+#: then :data:`FRIENDLY_FINETUNE`.
 SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
 
 
@@ -67,11 +84,13 @@ class Profile:
     images, samples : T-prob's overhead views and Monte Carlo samples per view.
     seeds : seed images per campaign (≤ ``perturbed_seeds``); ``resnet_seeds`` for T-resnet.
     timeout, resnet_timeout : verification seconds per instance.
-    pose_bound_timeout, pose_bound_method : seconds per hull for the pose-bound method's
-        keypoint regions in T-local (beside the allocation method), and their bounds
-        (``'zonotope'`` is far tighter on the CNN but takes tens of seconds per node on 2
-        CPU cores, a minute on object occlusions; ``'forward'`` a fraction of a second).
-    global_pose_bound_timeout, global_pose_bound_method : the same for T-global.
+    local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
+        pose-bound method's :class:`kpstudy.campaign.Settings` fields in T-local and
+        T-global (beside the allocation method): ``pose_bound_method``,
+        ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
+        hull: the same verdicts on any machine), ``pose_bound_start_depth``. A model left
+        out skips the method. ``'zonotope'`` is far tighter on the CNN than ``'forward'``
+        but takes seconds to minutes per node on 2 CPU cores.
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
     workers : local processes per campaign.
@@ -91,10 +110,8 @@ class Profile:
     resnet_timeout: float
     cnn_images: int | None = None
     resnet_images: int | None = None
-    pose_bound_timeout: float = 2.0
-    pose_bound_method: str = "forward"
-    global_pose_bound_timeout: float = 60.0
-    global_pose_bound_method: str = "zonotope"
+    local_pose_bound: dict = field(default_factory=lambda: dict(LOCAL_POSE_BOUND))
+    global_pose_bound: dict = field(default_factory=lambda: dict(GLOBAL_POSE_BOUND))
     symmetry_backbone: str = "cnn"
     figure_images: int = 50
     workers: int = 1
@@ -103,7 +120,7 @@ class Profile:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.type == "str" or f.name == "seed" or value is None:
+            if f.type in ("str", "dict") or f.name == "seed" or value is None:
                 continue
             if isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
@@ -112,16 +129,50 @@ class Profile:
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
-        for name in ("pose_bound_method", "global_pose_bound_method"):
-            if getattr(self, name) not in ("forward", "zonotope", "ibp"):
-                raise ValueError(
-                    f"{name}: expected 'forward', 'zonotope' or 'ibp', got {getattr(self, name)!r}"
-                )
+        from kpstudy.campaign import Settings
+
+        settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
+        for name in ("local_pose_bound", "global_pose_bound"):
+            for model, chosen in getattr(self, name).items():
+                if model not in ("cnn", "cnn_affine") or not isinstance(chosen, dict):
+                    raise ValueError(
+                        f"{name}: expected {{'cnn' or 'cnn_affine': {{setting: value}}}}, got "
+                        f"{model!r}: {chosen!r}"
+                    )
+                unknown = sorted(set(chosen) - settings)
+                if unknown:
+                    raise ValueError(
+                        f"{name}: unknown settings {unknown}; expected {sorted(settings)}"
+                    )
+                method = chosen.get("pose_bound_method", "forward")
+                if method not in ("forward", "zonotope", "ibp"):
+                    raise ValueError(
+                        f"{name}: expected pose_bound_method 'forward', 'zonotope' or 'ibp', "
+                        f"got {method!r}"
+                    )
         if self.symmetry_backbone not in ("cnn", "resnet18"):
             raise ValueError(
                 f"symmetry_backbone: expected 'cnn' or 'resnet18', got {self.symmetry_backbone!r}"
             )
 
+
+#: The quick profile's pose-bound method in T-local per model: the paper's CNN with
+#: forward bounds (its zonotope decides no object hull in minutes: docs/findings.md), the
+#: verification-friendly CNN with the zonotope on a node budget, starting from sub-hulls.
+LOCAL_POSE_BOUND = {
+    "cnn": dict(pose_bound_method="forward", pose_bound_timeout=2.0),
+    "cnn_affine": dict(
+        pose_bound_method="zonotope",
+        pose_bound_timeout=120.0,
+        pose_bound_nodes=16,
+        pose_bound_start_depth=4,
+    ),
+}
+#: The same in T-global: the zonotope for both.
+GLOBAL_POSE_BOUND = {
+    model: dict(pose_bound_method="zonotope", pose_bound_timeout=60.0)
+    for model in ("cnn", "cnn_affine")
+}
 
 PROFILES = {
     "quick": Profile(
@@ -152,9 +203,14 @@ PROFILES = {
         resnet_seeds=200,
         timeout=600.0,
         resnet_timeout=3600.0,
-        pose_bound_timeout=600.0,
-        pose_bound_method="zonotope",
-        global_pose_bound_timeout=600.0,
+        local_pose_bound={
+            model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
+            for model in ("cnn", "cnn_affine")
+        },
+        global_pose_bound={
+            model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
+            for model in ("cnn", "cnn_affine")
+        },
         symmetry_backbone="resnet18",
         figure_images=3000,
     ),
@@ -258,9 +314,19 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
 
 
 def checkpoints(out: Path) -> dict[str, Path]:
-    """Where the train stage writes each backbone's checkpoint."""
-    names = ("cnn", "cnn_affine", "resnet18")
+    """Where the train stage writes each backbone's checkpoint (``cnn_affine_base``: the
+    verification-friendly CNN's first stage, only when it is trained here)."""
+    names = ("cnn", "cnn_affine", "resnet18", "cnn_affine_base")
     return {name: Path(out) / "models" / f"{name}.pt" for name in names}
+
+
+def friendly_recipe(prof: Profile):
+    """The verification-friendly CNN's two :class:`kpstudy.train.TrainConfig` stages on
+    ``prof``; the second's ``init`` is left ``None`` (the first stage's weights fill it)."""
+    from kpstudy.train import TrainConfig
+
+    common = dict(images=prof.cnn_images, seed=prof.seed)
+    return TrainConfig(**FRIENDLY, **common), TrainConfig(**FRIENDLY_FINETUNE, **common)
 
 
 def train_models(
@@ -271,13 +337,13 @@ def train_models(
     import torch
 
     from data_gen.dataset import load_coco
-    from kpstudy.train import TrainConfig, config_of, train
+    from kpstudy.train import TrainConfig, config_of, train, weights_digest
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
+    first, second = friendly_recipe(prof)
     configs = {
         "cnn": TrainConfig("cnn", epochs=prof.cnn_epochs, images=prof.cnn_images, seed=prof.seed),
-        "cnn_affine": TrainConfig(**FRIENDLY, images=prof.cnn_images, seed=prof.seed),
         "resnet18": TrainConfig(
             "resnet18",
             epochs=prof.resnet_epochs,
@@ -293,20 +359,30 @@ def train_models(
         state = torch.load(file, map_location="cpu", weights_only=True)
         return config_of(state) == config and state["dataset"]["config"] == dataset
 
+    def friendly(file: Path) -> bool:  # the second stage, from weights of the first
+        state = torch.load(file, map_location="cpu", weights_only=True)
+        init = replace(second, init=state["config"].get("init"))
+        return made_by(file, init) and state.get("init_config") == asdict(first)
+
     for name, config in configs.items():
         path = paths[name]
         if path.is_file() and not made_by(path, config):  # another profile's or dataset's
             path.unlink()
-        if name == "cnn_affine" and retrain_friendly:
-            path.unlink(missing_ok=True)
-        elif (
-            name == "cnn_affine"
-            and not path.is_file()
-            and SHIPPED.is_file()
-            and made_by(SHIPPED, config)
-        ):
-            write_bytes_atomic(path, SHIPPED.read_bytes())
         train(out / "data", path, config, device=device, progress=progress)
+
+    path, base = paths["cnn_affine"], paths["cnn_affine_base"]
+    if path.is_file() and (retrain_friendly or not friendly(path)):
+        path.unlink()
+    if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
+        write_bytes_atomic(path, SHIPPED.read_bytes())
+    if not path.is_file() or torch.load(path, weights_only=True)["epoch"] < second.epochs:
+        if base.is_file() and not made_by(base, first):
+            base.unlink()
+        state = train(out / "data", base, first, device=device, progress=progress)
+        second = replace(second, init=weights_digest(state["model"]))
+        if path.is_file() and not made_by(path, second):  # begun from other first weights
+            path.unlink()
+        train(out / "data", path, second, init=base, device=device, progress=progress)
     return paths
 
 
@@ -320,8 +396,9 @@ def probe_input():
 
 def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
     """Write the verification-friendly checkpoint ``checkpoint`` (trained by
-    :data:`FRIENDLY` on ``data_dir``) to ``target`` without its optimiser state (the
-    checkpoint is finished), and its card ``target.json``: the recipe, the test-split
+    :data:`FRIENDLY` then :data:`FRIENDLY_FINETUNE` on ``data_dir``) to ``target`` without
+    its optimiser state (the checkpoint is finished), and its card ``target.json``: the
+    recipe (and the first stage's, ``init_recipe``), the test-split
     metrics of :func:`kpstudy.evaluate.evaluate` and the heatmaps' sum and absolute sum
     on :func:`probe_input`. Returns the card."""
     import torch
@@ -339,6 +416,7 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
         h = backbone(probe_input()).double()
     card = {
         "recipe": state["config"],
+        **({"init_recipe": state["init_config"]} if "init_config" in state else {}),
         "dataset": state["dataset"],
         "test": summary.to_dict(orient="records"),
         "probe": {"sum": float(h.sum()), "abs_sum": float(h.abs().sum())},
@@ -367,8 +445,7 @@ def run_notebooks(
         checkpoints={name: models[name] for name in ("cnn", "cnn_affine")},
         seeds=prof.seeds,
         timeout=prof.timeout,
-        pose_bound_timeout=prof.pose_bound_timeout,
-        pose_bound_method=prof.pose_bound_method,
+        pose_bound=prof.local_pose_bound,
         **campaign,
     )
     parameters = {
@@ -382,11 +459,7 @@ def run_notebooks(
             images=prof.images, samples=prof.samples, seed=prof.seed, workers=os.cpu_count() or 1
         ),
         "06_local": cnn_campaign,
-        "07_global": dict(
-            cnn_campaign,
-            pose_bound_timeout=prof.global_pose_bound_timeout,
-            pose_bound_method=prof.global_pose_bound_method,
-        ),
+        "07_global": dict(cnn_campaign, pose_bound=prof.global_pose_bound),
         "08_resnet": dict(
             data_dir=data_dir,
             checkpoint=models["resnet18"],

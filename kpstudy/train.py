@@ -6,19 +6,25 @@ target head's softmax is trained directly), minus the target's entropy so that a
 fit scores 0 (a KL divergence), optionally plus ``dsnt_weight`` × the mean Euclidean
 error of the DSNT keypoints in heatmap pixels. Keypoints outside the image are left out.
 Augmentation keeps the keypoint geometry: colour jitter and Gaussian noise (kornia).
-AdamW with a one-cycle schedule.
+AdamW with a one-cycle schedule (``schedule='onecycle'``) or a constant learning rate
+(``'constant'``, for fine-tuning).
+
+A run may start from another checkpoint's weights (``init``: the SHA-256 of those weights,
+:func:`weights_digest`; :func:`train` takes the checkpoint's path and checks it), e.g. a
+second, certified stage on top of a natural or lightly certified one. The checkpoint
+records the initial checkpoint's configuration (``init_config``).
 
 With ``certified_weight`` > 0 a bound term (:mod:`kpstudy.certified`) joins the loss:
 the heatmap loss's worst case, bounded by kpstudy.verify's forward bounds over random
 hulls of the study's kinds around the first ``certified_hulls`` images of each batch.
 Its gradient is rescaled to ``certified_weight`` times the natural loss's gradient norm
 (:func:`_backward`), so that it shapes the network without swamping the natural term.
-The term starts after ``certified_start`` natural epochs and its hulls grow from the
-image itself to ``certified_scale`` × their full size over ``certified_ramp`` epochs,
-quadratically in time (the warm-up of certified training: slow while the bounds are
-loosest). A scale below 1 bounds sub-hulls around the image, as SABR (Müller et al.
-2023) bounds small boxes: a weaker term that costs less accuracy and, measured here,
-still tightens the bounds over the whole hulls.
+The term starts after ``certified_start`` natural epochs and its hulls grow from
+``certified_scale_from`` (0: the image itself) to ``certified_scale`` × their full size
+over ``certified_ramp`` epochs, quadratically in time (the warm-up of certified training:
+slow while the bounds are loosest). A scale below 1 bounds sub-hulls around the image,
+as SABR (Müller et al. 2023) bounds small boxes: a weaker term that costs less accuracy
+and, measured here, still tightens the bounds over the whole hulls.
 
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
@@ -27,10 +33,12 @@ the metric history; training again with the same configuration resumes from it.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
 import numbers
+import re
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -47,6 +55,8 @@ from kpstudy.io import write_bytes_atomic
 from kpstudy.models import BACKBONES, argmax_keypoints, build_backbone, dsnt_keypoints
 
 FORMAT = "kpstudy-checkpoint/1"
+#: Learning-rate schedules of :class:`TrainConfig`.
+SCHEDULES = ("onecycle", "constant")
 #: The bound term's weight of ``train --certified`` (the verification-friendly CNN's).
 CERTIFIED_WEIGHT = 2.0
 
@@ -60,6 +70,9 @@ class TrainConfig:
     saturation jitter strength. ``noise``: Gaussian noise std on the [0, 1] input.
     ``certified_*``: the bound term (module docstring); ``certified_weight`` is the norm of
     its gradient as a fraction of the natural loss's gradient norm; 0 trains naturally.
+    ``schedule``: ``'onecycle'`` (peak ``lr``) or ``'constant'``. ``init``: the
+    :func:`weights_digest` of the checkpoint whose weights start the run (``None``: a
+    random initialisation from ``seed``).
     """
 
     backbone: str = "cnn"
@@ -79,6 +92,9 @@ class TrainConfig:
     certified_ramp: int = 4
     certified_scale: float = 1.0
     certified_method: str = "zonotope"
+    certified_scale_from: float = 0.0
+    schedule: str = "onecycle"
+    init: str | None = None
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -100,6 +116,24 @@ class TrainConfig:
         if not 0 < self.certified_scale <= 1:
             raise ValueError(
                 f"certified_scale: expected a number in (0, 1], got {self.certified_scale!r}"
+            )
+        if not (_finite(self.certified_scale_from) and 0 <= self.certified_scale_from):
+            raise ValueError(
+                "certified_scale_from: expected a number in [0, certified_scale], got "
+                f"{self.certified_scale_from!r}"
+            )
+        if self.certified_scale_from > self.certified_scale:
+            raise ValueError(
+                f"certified_scale_from: expected at most certified_scale={self.certified_scale}, "
+                f"got {self.certified_scale_from!r}"
+            )
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule: expected one of {SCHEDULES}, got {self.schedule!r}")
+        if self.init is not None and not (
+            isinstance(self.init, str) and re.fullmatch(r"[0-9a-f]{64}", self.init)
+        ):
+            raise ValueError(
+                f"init: expected a SHA-256 hex digest of a checkpoint's weights, got {self.init!r}"
             )
         for name in ("lr", "sigma"):
             if not (_finite(getattr(self, name)) and getattr(self, name) > 0):
@@ -188,11 +222,19 @@ def predict(backbone: nn.Module, images: np.ndarray, batch_size: int = 64):
 
 
 def train(
-    data_dir, out, config: TrainConfig = TrainConfig(), *, device="cpu", progress: bool = True
+    data_dir,
+    out,
+    config: TrainConfig = TrainConfig(),
+    *,
+    init=None,
+    device="cpu",
+    progress: bool = True,
 ) -> dict:
     """Train (or resume) a backbone on ``data_dir`` and write the checkpoint ``out``.
 
-    ``device`` (``'cpu'``, ``'cuda'``) changes where it runs, not the result's format.
+    ``init``: the checkpoint whose weights start the run, required when ``config.init``
+    is set (its :func:`weights_digest` must equal it). ``device`` (``'cpu'``, ``'cuda'``)
+    changes where it runs, not the result's format.
 
     A checkpoint already at ``out`` with the same configuration is resumed (a finished
     one is returned as it is); one with another configuration is an error.
@@ -226,17 +268,23 @@ def train(
     backbone = build_backbone(config.backbone, len(train_set.keypoint_names))
     if state is not None and state["dataset"] != dataset:
         raise ValueError(f"data: {data_dir} is not the dataset checkpoint {out} was trained on")
+    init_config = _initial_weights(backbone, config, init) if state is None else None
     device = check_device(device)
     backbone = backbone.to(device, memory_format=torch.channels_last)
     optimiser = torch.optim.AdamW(
         backbone.parameters(), lr=config.lr, weight_decay=config.weight_decay
     )
     steps = -(-len(train_set) // config.batch_size)
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimiser, max_lr=config.lr, total_steps=config.epochs * steps, pct_start=0.15
-    )
+    if config.schedule == "constant":
+        scheduler = torch.optim.lr_scheduler.ConstantLR(optimiser, factor=1.0, total_iters=0)
+    else:
+        scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            optimiser, max_lr=config.lr, total_steps=config.epochs * steps, pct_start=0.15
+        )
     if state is None:
         state = dict(format=FORMAT, config=asdict(config), dataset=dataset, epoch=0, history=[])
+        if init_config is not None:
+            state["init_config"] = init_config
     else:
         backbone.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimizer"])
@@ -268,7 +316,8 @@ def train(
             if certify is not None and epoch >= config.certified_start:
                 done = (epoch - config.certified_start + step / steps) / config.certified_ramp
                 # Slow at first, while the bounds are loosest; at most ``certified_scale``.
-                scale = config.certified_scale * min(1.0, done) ** 2
+                low, high = config.certified_scale_from, config.certified_scale
+                scale = low + (high - low) * min(1.0, done) ** 2
                 bound = certify(x, keypoints[idx], weights[idx], scale)
                 bound_total += bound.item() * len(idx)
             else:
@@ -306,6 +355,43 @@ def train(
         if progress:
             print(json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
     return state
+
+
+def weights_digest(model: dict) -> str:
+    """SHA-256 (hex) of a model state dict: every entry's name, dtype, shape and bytes, in
+    name order. A checkpoint and its shipped copy (without optimiser state) share it."""
+    digest = hashlib.sha256()
+    for name in sorted(model):
+        value = model[name].detach().cpu().contiguous()
+        digest.update(f"{name}|{value.dtype}|{tuple(value.shape)}|".encode())
+        digest.update(value.numpy().tobytes() if value.numel() else b"")
+    return digest.hexdigest()
+
+
+def _initial_weights(backbone: nn.Module, config: TrainConfig, init) -> dict | None:
+    """Load the weights of checkpoint ``init`` into ``backbone`` as ``config.init`` asks;
+    returns the initial checkpoint's configuration (``None`` without ``config.init``)."""
+    if config.init is None:
+        if init is not None:
+            raise ValueError("init: given, but the configuration has no init digest (init=None)")
+        return None
+    if init is None:
+        raise ValueError(
+            f"init: expected the checkpoint whose weights have digest {config.init[:12]}…, got none"
+        )
+    _, state = load_checkpoint(init)
+    if config_of(state).backbone != config.backbone:
+        raise ValueError(
+            f"init: expected a {config.backbone} checkpoint, got {config_of(state).backbone} "
+            f"({init})"
+        )
+    if weights_digest(state["model"]) != config.init:
+        raise ValueError(
+            f"init: {init} holds weights with digest {weights_digest(state['model'])[:12]}…, "
+            f"expected {config.init[:12]}…"
+        )
+    backbone.load_state_dict(state["model"])
+    return state["config"]
 
 
 def _diverged(out: Path, saved_epoch: int, epoch: int, step: int, what) -> str:

@@ -250,12 +250,15 @@ def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     import json
 
-    from kpstudy.reproduce import FRIENDLY, SHIPPED, probe_input
+    from kpstudy.reproduce import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
 
     backbone, state = load_checkpoint(SHIPPED)
     card = json.loads(SHIPPED.with_suffix(".json").read_text())
-    assert {k: getattr(config_of(state), k) for k in FRIENDLY} == FRIENDLY
-    assert card["recipe"] == state["config"] and "optimizer" not in state
+    assert {k: getattr(config_of(state), k) for k in FRIENDLY_FINETUNE} == FRIENDLY_FINETUNE
+    first = TrainConfig(**state["init_config"])
+    assert {k: getattr(first, k) for k in FRIENDLY} == FRIENDLY
+    assert card["recipe"] == state["config"] and card["init_recipe"] == state["init_config"]
+    assert "optimizer" not in state
     with torch.no_grad():
         h = backbone(probe_input()).double()
     assert h.sum().item() == pytest.approx(card["probe"]["sum"], rel=1e-5, abs=1e-3)

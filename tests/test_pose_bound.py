@@ -4,13 +4,18 @@ import itertools
 
 import numpy as np
 import pytest
+import torch
 
 from data_gen.perturb import hull_vertices
+from kpstudy import pose_bound as pose_bound_module
 from kpstudy.allocation import allocate_tolerances
-from kpstudy.certify import certify
+from kpstudy.certify import certify, target_pose_errors
 from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.pnp import solve_pnp
 from kpstudy.pose_bound import linearised_bound
+from kpstudy.preprocess import normalise, resize_to_input
 from kpstudy.train import load_checkpoint
+from kpstudy.verify import ConvexHull
 from tests.test_campaign import _seed, study  # noqa: F401  (the module fixture)
 
 
@@ -111,3 +116,36 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     assert zono["pb_status"] == "holds" and len(zono["pb_pixels"]) == 23
     with pytest.raises(ValueError, match="^method"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")
+
+
+def test_a_node_budget_gives_the_same_regions_whatever_the_time(study):  # noqa: F811
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    budget = dict(check_samples=0, pose_bound_nodes=3, pose_bound_start_depth=2)
+    first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=600, **budget)
+    assert 1 <= first["pb_nodes"] <= 3 and first["pb_stopped"] in ("nodes", None)
+    pose_bound_module._CACHE.clear()
+    pose_bound_module._ENUMERATED.clear()
+    again = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=300, **budget)
+    for key in ("pb_status", "pb_pixels", "pb_bound", "pb_nodes", "pb_stopped"):
+        assert again[key] == first[key]
+
+
+def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noqa: F811
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    # α = 10⁻³: Ξ is so small that the two-epoch network's seed pose already leaves it.
+    record = certify(backbone, vertices, seed, alpha=1e-3, check_samples=0, pose_bound_timeout=60)
+    assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
+    assert record["pb_nodes"] == 0 and record["pb_stopped"] == "witness"
+    lam = torch.tensor(record["pb_counterexample"], dtype=torch.float64)
+    s = backbone.input_size
+    images = np.stack([resize_to_input(v, s) for v in vertices])
+    hull = ConvexHull(torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous())
+    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
+    errors = target_pose_errors(backbone, hull.image(lam[None]), seed, R, t)[0]
+    assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ

@@ -2,6 +2,7 @@
 under papermill → REPORT.md; a rerun finds everything current."""
 
 import json
+import re
 from dataclasses import replace
 
 import pandas as pd
@@ -27,8 +28,16 @@ TINY = replace(
     resnet_seeds=1,
     timeout=5.0,
     resnet_timeout=5.0,
-    pose_bound_timeout=1.0,
-    global_pose_bound_timeout=1.0,
+    local_pose_bound={
+        "cnn": dict(pose_bound_timeout=1.0),
+        "cnn_affine": dict(
+            pose_bound_method="zonotope",
+            pose_bound_timeout=60.0,
+            pose_bound_nodes=2,
+            pose_bound_start_depth=1,
+        ),
+    },
+    global_pose_bound={m: dict(pose_bound_timeout=1.0) for m in ("cnn", "cnn_affine")},
     figure_images=2,
 )
 
@@ -110,13 +119,22 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         (dict(timeout=0), "timeout: expected a positive number"),
         (dict(speed=2), "overrides: unknown profile fields ['speed']"),
         (
-            dict(global_pose_bound_method="crown"),
-            "global_pose_bound_method: expected 'forward', 'zonotope' or 'ibp', got 'crown'",
+            dict(global_pose_bound={"cnn": {"pose_bound_method": "crown"}}),
+            "global_pose_bound: expected pose_bound_method 'forward', 'zonotope' or 'ibp', "
+            "got 'crown'",
+        ),
+        (
+            dict(local_pose_bound={"cnn": {"pose_bound_speed": 2}}),
+            "local_pose_bound: unknown settings ['pose_bound_speed']",
+        ),
+        (
+            dict(local_pose_bound={"vgg": {}}),
+            "local_pose_bound: expected {'cnn' or 'cnn_affine'",
         ),
     ],
 )
 def test_bad_profiles_are_refused_before_any_work(overrides, message):
-    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+    with pytest.raises(ValueError, match=re.escape(message)):
         profile("quick", **overrides)
 
 

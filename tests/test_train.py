@@ -223,3 +223,80 @@ def test_cli_bad_input_exits_2_and_writes_nothing(tiny_dataset, tmp_path, args, 
     proc = _cli(*args)
     assert proc.returncode == 2 and message in proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_fine_tuning_stage_starts_from_its_initial_checkpoint(checkpoint, tiny_dataset, tmp_path):
+    from kpstudy.train import weights_digest
+
+    _, base = load_checkpoint(checkpoint)
+    digest = weights_digest(base["model"])
+    # lr so small that the weights stay where the first stage left them
+    stage = TrainConfig(
+        epochs=1, batch_size=4, images=8, lr=1e-12, schedule="constant", init=digest
+    )
+    state = train(tiny_dataset, tmp_path / "ft.pt", stage, init=checkpoint, progress=False)
+    assert state["init_config"] == base["config"]
+    for name, value in base["model"].items():
+        if value.is_floating_point() and "running_" not in name:  # batch statistics move
+            torch.testing.assert_close(state["model"][name], value, atol=1e-6, rtol=0)
+    assert [g["lr"] for g in torch.load(tmp_path / "ft.pt")["optimizer"]["param_groups"]] == [1e-12]
+    scratch = train(
+        tiny_dataset,
+        tmp_path / "scratch.pt",
+        TrainConfig(**(vars(stage) | {"init": None})),
+        progress=False,
+    )
+    assert any(
+        not torch.equal(scratch["model"][k], v)
+        for k, v in base["model"].items()
+        if v.is_floating_point()
+    )
+
+
+def test_a_fine_tuning_stage_refuses_other_weights(checkpoint, tiny_dataset, tmp_path):
+    stage = TrainConfig(epochs=1, batch_size=4, images=8, schedule="constant", init="0" * 64)
+    with pytest.raises(ValueError, match="init: .* digest .* expected 000000000000"):
+        train(tiny_dataset, tmp_path / "a.pt", stage, init=checkpoint, progress=False)
+    with pytest.raises(ValueError, match="init: expected the checkpoint"):
+        train(tiny_dataset, tmp_path / "b.pt", stage, progress=False)
+    with pytest.raises(ValueError, match="init: given, but"):
+        train(tiny_dataset, tmp_path / "c.pt", TINY, init=checkpoint, progress=False)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("schedule", "cosine", "schedule: expected one of"),
+        ("init", "abc", "init: expected a SHA-256"),
+        ("certified_scale_from", 0.5, "certified_scale_from: expected at most"),
+        ("certified_scale_from", -0.1, "certified_scale_from: expected a number"),
+    ],
+)
+def test_bad_fine_tuning_settings_are_named(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(certified_scale=0.25, **{field: value})
+
+
+def test_the_term_grows_from_its_first_scale(tiny_dataset, tmp_path, monkeypatch):
+    scales = []
+
+    def record(self, x, keypoints, weights, scale):
+        scales.append(scale)
+        return 0 * sum(p.sum() for p in self.backbone.parameters())
+
+    monkeypatch.setattr(train_module._CertifiedTerm, "__call__", record)
+    config = TrainConfig(
+        "cnn_affine",
+        epochs=2,
+        batch_size=4,
+        images=8,
+        certified_weight=1.0,
+        certified_start=0,
+        certified_ramp=2,
+        certified_scale_from=0.1,
+        certified_scale=0.5,
+    )
+    train(tiny_dataset, tmp_path / "c.pt", config, progress=False)
+    expected = [0.1 + 0.4 * (step / 4) ** 2 for step in range(4)]
+    assert scales == pytest.approx(expected)

@@ -99,10 +99,36 @@ def test_regions_are_exact_on_a_known_network():
 def test_a_spent_budget_keeps_the_sets_sound():
     hull = ConvexHull(torch.tensor([[0.0], [1.0]], dtype=torch.float64))
     regions = reachable_argmax(Segment(), hull, [4, 2], samples=0, max_nodes=1)
-    assert regions.stats["timed_out"]
+    assert regions.stats["stopped"] == "nodes" and not regions.stats["timed_out"]
     assert {0, 1, 2} <= set(regions.possible[0].tolist())  # not yet refined, still sound
     assert 3 not in regions.possible[0]  # −1 is beaten everywhere, even at the root
     assert not regions.complete and regions.gap[0] >= 1
+
+
+@pytest.mark.parametrize("start_depth", [1, 3])
+def test_a_search_started_below_the_root_finds_the_same_exact_sets(start_depth):
+    hull = ConvexHull(torch.tensor([[0.0], [1.0]], dtype=torch.float64))
+    whole = reachable_argmax(Segment(), hull, [4, 2], samples=0)
+    deep = reachable_argmax(Segment(), hull, [4, 2], samples=0, start_depth=start_depth)
+    assert deep.complete and deep.stats["depth"] >= start_depth
+    assert [p.tolist() for p in deep.possible] == [p.tolist() for p in whole.possible]
+    assert deep.nodes >= 2**start_depth  # every node of the first level is bounded
+
+
+def test_a_search_started_below_the_root_stays_sound_when_its_budget_runs_out():
+    model = MixedNet(0)
+    hull = ConvexHull(hull_vertices(0, 2, (2, 8, 8)))
+    regions = reachable_argmax(
+        model, hull, [3, 3], start_depth=4, max_nodes=3, batch=1, samples=256
+    )
+    assert regions.stats["stopped"] == "nodes"
+    for g in range(2):  # every index some sample reaches is in the possible set
+        assert set(regions.reached(g)) <= set(regions.possible[g].tolist())
+    lam = hull.sample(512, seed=9)
+    with torch.no_grad():
+        y = model(hull.image(lam)).flatten(1).reshape(-1, 2, 3).argmax(-1)
+    for g in range(2):
+        assert set(y[:, g].tolist()) <= set(regions.possible[g].tolist())
 
 
 def test_bad_input_is_named():
@@ -114,6 +140,9 @@ def test_bad_input_is_named():
         (dict(group_sizes=[6], method="crown"), "method"),
         (dict(group_sizes=[6], timeout=0), "timeout"),
         (dict(group_sizes=[6], candidates=0), "candidates"),
+        (dict(group_sizes=[6], start_depth=-1), "start_depth"),
+        (dict(group_sizes=[6], start_depth=13), "start_depth"),
+        (dict(group_sizes=[6], start_depth=True), "start_depth"),
     ]:
         with pytest.raises(ValueError, match=f"^{name}"):
             reachable_argmax(model, hull, **kwargs)

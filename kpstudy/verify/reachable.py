@@ -39,6 +39,8 @@ from kpstudy.verify.graph import trace
 from kpstudy.verify.symbols import l1_rows
 
 METHODS = ("ibp", "forward", "zonotope")
+#: Most root splits :func:`reachable_argmax` makes before bounding (2^12 nodes).
+MAX_START_DEPTH = 12
 
 
 @dataclass
@@ -59,7 +61,8 @@ class Regions:
     nodes : int
         Branch-and-bound nodes bounded.
     stats : dict
-        ``method``, ``depth``, ``timed_out``, ``candidates``.
+        ``method``, ``depth``, ``candidates``; ``stopped``: ``'nodes'`` (``max_nodes``
+        spent), ``'time'`` (``timeout`` fired; also ``timed_out``) or None (finished).
     """
 
     group_sizes: list[int]
@@ -93,6 +96,7 @@ def reachable_argmax(
     timeout: float = 10.0,
     max_nodes: int | None = None,
     batch: int | None = None,
+    start_depth: int = 0,
     candidates: int = 4,
     samples: int = 64,
     seed: int = 0,
@@ -116,7 +120,14 @@ def reachable_argmax(
         Seconds before the search stops (checked between nodes and, inside a node's
         bounds, between layers); the possible sets are sound at any time.
     max_nodes, batch : int, optional
-        Most nodes to bound; nodes bounded together (default: what fits in ``memory``).
+        Most nodes to bound (0: witnesses only, every index stays possible); nodes bounded
+        together (default: what fits in ``memory``).
+    start_depth : int
+        Splits of the root before the first bounds: the search starts from ``2^start_depth``
+        nodes (for a simplex of ``n`` vertices after the seed, ``start_depth = k·n`` gives
+        nodes of about ``2^-k`` of the set's size per direction). A set that is exact only
+        on small nodes skips its costliest, undecisive bounds that way; the corners of the
+        whole set are still evaluated for witnesses.
     candidates : int
         Indices per group (largest lower bounds) that try to beat each other index.
     samples : int
@@ -145,12 +156,18 @@ def reachable_argmax(
         raise ValueError(
             f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
         )
-    check_budget(timeout, max_nodes, batch)
-    for name, v in (("candidates", candidates), ("samples", samples)):
-        if not (isinstance(v, int) and v >= (1 if name == "candidates" else 0)):
-            raise ValueError(
-                f"{name}: expected an integer >= {int(name == 'candidates')}, got {v!r}"
-            )
+    check_budget(timeout, max_nodes or None, batch)
+    if max_nodes is not None and (isinstance(max_nodes, bool) or max_nodes < 0):
+        raise ValueError(f"max_nodes: expected None or an integer >= 0, got {max_nodes!r}")
+    for name, v, least in (("candidates", candidates, 1), ("samples", samples, 0)):
+        if isinstance(v, bool) or not (isinstance(v, int) and v >= least):
+            raise ValueError(f"{name}: expected an integer >= {least}, got {v!r}")
+    if isinstance(start_depth, bool) or not (
+        isinstance(start_depth, int) and 0 <= start_depth <= MAX_START_DEPTH
+    ):
+        raise ValueError(
+            f"start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {start_depth!r}"
+        )
     sizes = [int(s) for s in group_sizes]
     if not sizes or min(sizes) < 1:
         raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
@@ -175,22 +192,28 @@ def reachable_argmax(
         if samples:
             search.witness(input_set.sample(samples, seed))
         possible = torch.zeros(G, S, dtype=torch.bool)  # union over closed nodes
-        root = search.valid[None].clone()
-        queue = [(input_set.root(), root, 0)]
-        nodes_done, depth, timed_out = 0, 0, False
+        root = input_set.root()
+        search.witness(input_set.node_points(root).reshape(-1, input_set.n))  # its corners
+        for _ in range(start_depth):
+            root = input_set.split(root)
+        queue = [(root, search.valid[None].repeat(len(root), 1, 1), start_depth)]
+        nodes_done, depth, stopped = 0, start_depth, None
         while queue:
-            if time.perf_counter() - start > timeout or (max_nodes and nodes_done >= max_nodes):
-                timed_out = True
+            if max_nodes is not None and nodes_done >= max_nodes:
+                stopped = "nodes"
                 break
-            nodes, parent, level = _take(queue, batch)
+            if time.perf_counter() - start > timeout:
+                stopped = "time"
+                break
+            room = batch if max_nodes is None else min(batch, max_nodes - nodes_done)
+            nodes, parent, level = _take(queue, room)
             depth = max(depth, level)
-            points = input_set.node_points(nodes)  # corners (the root's), then the centre
-            search.witness((points if level == 0 else points[:, -1:]).reshape(-1, input_set.n))
+            search.witness(input_set.node_points(nodes)[:, -1])  # the centres
             try:
                 kept = search.undominated(nodes) & parent  # (B, G, S)
             except BoundsTimeout:  # the nodes stay open, with their parents' sets
                 queue.insert(0, (nodes, parent, level))
-                timed_out = True
+                stopped = "time"
                 break
             nodes_done += len(nodes)
             open_ = (kept & ~search.reached).flatten(1).any(1)
@@ -208,7 +231,13 @@ def reachable_argmax(
         search.witnesses,
         time.perf_counter() - start,
         nodes_done,
-        {"method": method, "depth": depth, "timed_out": timed_out, "candidates": candidates},
+        {
+            "method": method,
+            "depth": depth,
+            "timed_out": stopped == "time",
+            "stopped": stopped,
+            "candidates": candidates,
+        },
     )
 
 
