@@ -213,3 +213,20 @@ def test_margin_bracket_contains_the_sampled_minimum(spread):
         assert lower is None
     else:
         assert lower is not None and lower <= float(sampled.min()) + 1e-6
+
+
+def test_a_counterexample_fails_at_the_exact_set_point_in_float64():
+    """y0 − y1 = (x + b) − x with b = 1e-9 rounds to 0 in float32 for x ~ 1 (a tie, so a
+    'violation' on every float32 image) but is +1e-9 at every exact hull point: no
+    counterexample may be reported, the search goes on (float64 bounds prove it)."""
+    net = nn.Sequential(nn.Linear(1, 2)).eval()
+    with torch.no_grad():
+        net[0].weight.copy_(torch.tensor([[1.0], [1.0]]))
+        net[0].bias.copy_(torch.tensor([1e-9, 0.0]))
+    hull = ConvexHull(torch.tensor([[1.0], [2.0]]))
+    with torch.no_grad():
+        y = net(hull.image(hull.sample(50, 0)))
+    assert (y[:, 0] <= y[:, 1]).all()  # float32 sees a tie everywhere
+    result = verify(net, hull, ArgmaxSpec([2], [0]), max_nodes=8, timeout=10)
+    assert result.counterexample is None and result.status in ("holds", "unknown")
+    assert result.stats["attack_margin"][0] > 0  # the float64 margins of the points tried

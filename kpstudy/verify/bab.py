@@ -237,7 +237,7 @@ class _Search:
     def __init__(self, model, graph, input_set, spec, method, tol, memory, deadline):
         self.model, self.graph, self.set, self.spec = model, graph, input_set, spec
         self.method, self.tol, self.memory, self.deadline = method, tol, memory, deadline
-        self.graph64 = None
+        self.graph64 = self.model64 = None
         self.rechecks = 0
         #: Per group, the smallest margin the model showed at a point tried inside the set.
         self.attack_margin = torch.full((spec.n_groups,), torch.inf, dtype=torch.float64)
@@ -273,11 +273,21 @@ class _Search:
             proved |= close & self._float64_proves(nodes, close)
         return margin, proved
 
+    def _model64(self):
+        """A float64 copy of the model (made once)."""
+        if self.model64 is None:
+            self.model64 = copy.deepcopy(self.model).double()
+        return self.model64
+
+    def _margins64(self, points) -> torch.Tensor:
+        """Group margins ``(B, G)`` of the float64 model at the exact set points (float64)."""
+        y = self._model64()(self.set.image(points, dtype=torch.float64)).flatten(1)
+        return self.spec.group_min(self.spec.margins(y))
+
     def _float64_proves(self, nodes, close) -> torch.Tensor:
         """Whether float64 bounds prove the groups with a close call ``(B, G)``."""
         if self.graph64 is None:
-            model64 = copy.deepcopy(self.model).double()
-            self.graph64 = trace(model64, example_input(self.set).double())
+            self.graph64 = trace(self._model64(), example_input(self.set).double())
         which = close.any(1)
         self.rechecks += int(which.sum())
         region = node_region(self.set, nodes[which], torch.float64)
@@ -343,12 +353,21 @@ class _Search:
 
     def _recheck(self, points, mask) -> dict[int, Counterexample]:
         """Counterexamples among ``points`` (set parameters): inside the set, and failing
-        an open group on the concrete model."""
+        an open group on the concrete model at the set's exact point in float64.
+
+        The model runs on the images in its own dtype first; the points whose margin
+        there is at most ``tol`` for an open group are evaluated again on the exact set
+        point (:meth:`image` in float64) by a float64 copy of the model, and only that
+        margin counts: a point that fails only on its float32-rounded image is no
+        counterexample, and its group stays open for the search."""
         points = self._into_set(points)
         inside = self.set.contains_point(points)
         x = self.set.image(points)
         y = self.model(x).flatten(1)
         margin = self.spec.group_min(self.spec.margins(y).double())
+        close = ((margin <= self.tol_abs) & mask & inside[:, None]).any(1)
+        if close.any() and self.graph.dtype != torch.float64:
+            margin[close] = self._margins64(points[close])
         if inside.any():
             seen = margin[inside].min(0).values
             self.attack_margin = torch.minimum(self.attack_margin, seen)

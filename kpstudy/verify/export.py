@@ -1,24 +1,36 @@
 """Export a verification instance as ONNX + VNN-LIB, the VNN-COMP exchange format.
 
 :func:`export_instance` writes two files so that other verifiers (alpha-beta-CROWN, NNV,
-ModelVerification.jl, …) can run the very instance this package checks:
+PyRAT, Marabou, …) can run the very instance this package checks:
 
 ``model.onnx``
-    For a :class:`~kpstudy.verify.sets.ConvexHull` or
-    :class:`~kpstudy.verify.sets.Parallelotope`, the network with the affine map
-    ``λ ↦ X0 + λ D`` folded in as a leading layer: input ``lam`` of shape ``(1, n)``,
-    so the input set is a polytope in ``n`` variables rather than in pixel space. For a
-    :class:`~kpstudy.verify.sets.Box`, the plain network on ``x`` of shape ``(1, *S)``.
-    Output ``y`` of shape ``(1, m)``, the model's output flattened.
+    For a :class:`~kpstudy.verify.sets.ConvexHull`, the network with the hull folded in
+    as leading layers that map the input onto the barycentric weights ``w`` of the
+    ``n + 1`` vertices, then ``image = w @ V`` with the vertices ``V`` themselves (so the
+    set is exactly their hull in real arithmetic, not that of rounded directions):
+
+    * ``input_form='box'`` (default): input ``u`` of shape ``(1, n)`` in ``[0, 1]^n``,
+      mapped onto the simplex by :class:`~kpstudy.verify.simplex_map.BoxToSimplex` (a
+      sort by a ReLU min/max network, then the spacings), so that any verifier that
+      accepts box inputs runs the exact hull;
+    * ``input_form='simplex'``: input ``lam`` of shape ``(1, n)`` with ``λ ≥ 0`` and the
+      linear input constraint ``Σ λ ≤ 1`` (only some verifiers accept it).
+
+    A :class:`~kpstudy.verify.sets.Parallelotope` takes ``lam`` in the cube ``[0, 1]^n``;
+    a :class:`~kpstudy.verify.sets.Box` the plain network on ``x`` of shape ``(1, *S)``.
+    Output ``y`` of shape ``(1, m)``, the model's output flattened. float32 by default,
+    float64 with ``dtype=torch.float64`` (the model and the vertices converted).
 ``spec.vnnlib``
     The input set and the *violation* of the :class:`~kpstudy.verify.spec.ArgmaxSpec`
-    (VNN-COMP asks for the negation of the property: ``unsat`` means verified). Inputs:
-    ``0 ≤ λ_i ≤ 1`` plus, for the hull, ``Σ λ ≤ 1`` (a linear input constraint, which
-    only some verifiers accept); the parallelotope ``[0, 1]^n`` is what MV.jl verifies
-    instead; a box gives per-pixel bounds ``X_i`` in C order. Output: one disjunction
-    with a clause ``Y_j ≥ Y_t`` per margin row of the spec.
+    (VNN-COMP asks for the negation of the property: ``unsat`` means verified), one
+    clause ``Y_j ≥ Y_t`` per margin row in a disjunction. ``vnnlib_version='1.0'``: the
+    form of the VNN-COMPs (``declare-const X_i Real``, inputs flattened in C order);
+    ``'2.0'``: the VNN-LIB 2.0 standard (``declare-network`` with typed, shaped tensors
+    ``X`` and ``Y``; numbers in positional notation, as its grammar asks).
 
-:func:`read_vnnlib_polytope` reads back exactly the subset of VNN-LIB written here.
+:func:`read_vnnlib_polytope` reads back exactly the VNN-LIB 1.0 subset written here;
+:func:`point_of_input` maps an assignment of the ONNX input (a verifier's
+counterexample) to the set's own point (``λ``, or the image of a box).
 """
 
 from __future__ import annotations
@@ -34,32 +46,64 @@ import torch
 from onnx import numpy_helper
 from onnx.reference import ReferenceEvaluator
 from torch import nn
+from torch.nn import functional as F
 
 from kpstudy.io import atomic_path
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
+from kpstudy.verify.simplex_map import BoxToSimplex, SimplexWeights, lambda_of_box
 from kpstudy.verify.spec import ArgmaxSpec
+
+INPUT_FORMS = ("box", "simplex")
+VNNLIB_VERSIONS = ("1.0", "2.0")
+DTYPES = {torch.float32: "float32", torch.float64: "float64"}
 
 
 class _Instance(nn.Module):
-    """``model(X0 + lam @ D)`` flattened to ``(B, m)``; without directions, ``model(x)``."""
+    """``model(w(x) @ V)`` flattened to ``(B, m)`` for a hull (``w``: the input's
+    barycentric weights); ``model(x)`` for a box."""
 
-    def __init__(self, model: nn.Module, input_set) -> None:
+    def __init__(self, model: nn.Module, input_set, input_form: str, dtype) -> None:
         super().__init__()
-        self.model = copy.deepcopy(model).float().eval()
+        self.model = copy.deepcopy(model).to(dtype).eval()
         self.shape = input_set.shape
-        self.affine = isinstance(input_set, ConvexHull)
-        if self.affine:
+        self.hull = isinstance(input_set, ConvexHull)
+        if self.hull:
             n = input_set.n
-            self.register_buffer("origin", input_set.origin.reshape(1, -1).float())
-            self.register_buffer("directions", input_set.directions.reshape(n, -1).float())
+            if _form(input_set, input_form) == "box" and not isinstance(input_set, Parallelotope):
+                self.weights = BoxToSimplex(n, dtype)
+            else:
+                self.weights = SimplexWeights(n, dtype)
+            self.register_buffer("vertices", input_set.vertices.reshape(n + 1, -1).to(dtype))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.affine:
-            x = (self.origin + x @ self.directions).reshape(-1, *self.shape)
+        if self.hull:  # w @ V = (w − e_0) @ V + X0 as one Gemm with a bias: Marabou 2.0.0's
+            # ONNX reader mis-reads a constant Add before or after a MatMul
+            x = F.linear(self.weights.linear(x), self.vertices.T, self.vertices[0])
+            x = x.reshape(-1, *self.shape)
         return self.model(x).flatten(1)
 
 
-def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *, opset=17):
+def _form(input_set, input_form: str) -> str:
+    """What the exported input is: ``'box'`` (``[0, 1]^n``: a hull's box form or a
+    parallelotope), ``'simplex'`` (``λ`` with ``Σ λ ≤ 1``) or ``'pixels'`` (a Box set)."""
+    if isinstance(input_set, Box):
+        return "pixels"
+    if isinstance(input_set, Parallelotope):
+        return "box"
+    return input_form
+
+
+def export_instance(
+    directory,
+    model: nn.Module,
+    input_set,
+    spec: ArgmaxSpec,
+    *,
+    input_form: str = "box",
+    dtype=torch.float32,
+    vnnlib_version: str = "1.0",
+    opset: int = 17,
+):
     """Write ``model.onnx`` and ``spec.vnnlib`` for one verification instance.
 
     Parameters
@@ -67,29 +111,40 @@ def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *,
     directory : str or Path
         Output folder, created if missing; existing files of the same names are replaced.
     model : nn.Module
-        The network on images ``(B, *S)``; exported in float32, eval mode (a copy: the
+        The network on images ``(B, *S)``; exported in eval mode (a copy in ``dtype``: the
         module itself is left untouched).
     input_set : ConvexHull, Parallelotope or Box
-        The input set; a hull or parallelotope is exported over ``λ`` (``n`` inputs), a box
+        The input set; a hull or parallelotope is exported over ``n`` parameters, a box
         over its ``prod(S)`` pixels.
     spec : ArgmaxSpec
         The property; ``spec.n_outputs`` must be the model's flattened output size and at
         least one group must have a target.
+    input_form : {'box', 'simplex'}
+        A hull's input: ``u ∈ [0, 1]^n`` mapped exactly onto the simplex inside the
+        network (default), or ``λ`` with the linear constraint ``Σ λ ≤ 1``. Ignored for a
+        parallelotope and a box, whose inputs are boxes already.
+    dtype : torch.float32 or torch.float64
+        Precision of the ONNX graph (weights, vertices, input and output).
+    vnnlib_version : {'1.0', '2.0'}
+        VNN-LIB dialect: the VNN-COMP form (1.0) or the VNN-LIB 2.0 standard.
     opset : int
         ONNX opset version.
 
     Returns
     -------
     dict
-        ``onnx``, ``vnnlib`` (Paths), ``n_inputs``, ``n_outputs`` and ``n_disjuncts`` (the
-        margin rows, one clause each).
+        ``onnx``, ``vnnlib`` (Paths), ``n_inputs``, ``n_outputs``, ``n_disjuncts`` (the
+        margin rows, one clause each), ``input_name`` (``'u'``, ``'lam'`` or ``'x'``),
+        ``input_form`` (``'box'``, ``'simplex'`` or ``'pixels'``), ``dtype``
+        (``'float32'`` / ``'float64'``) and ``vnnlib_version``.
 
     Raises
     ------
     ValueError
-        If ``directory`` is an existing file, ``input_set`` is of another type, ``spec``
-        does not fit the model's output or has no verified group, or ``model`` fails to run
-        or to export. Nothing is written then (files go to temporary names first).
+        If ``directory`` is an existing file, ``input_set`` is of another type,
+        ``input_form``, ``dtype`` or ``vnnlib_version`` is not one of the above, ``spec``
+        does not fit the model's output or has no verified group, or ``model`` fails to
+        run or to export. Nothing is written then (files go to temporary names first).
     """
     directory = Path(directory)
     if directory.exists() and not directory.is_dir():
@@ -105,18 +160,28 @@ def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *,
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     if spec.n_rows == 0:
         raise ValueError("spec: expected at least one group with a target, got none")
-    wrapper = _Instance(model, input_set)
-    if isinstance(input_set, Box):
-        name, example = "x", input_set.lower[None].float()
+    if input_form not in INPUT_FORMS:
+        raise ValueError(f"input_form: expected one of {INPUT_FORMS}, got {input_form!r}")
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype: expected torch.float32 or torch.float64, got {dtype!r}")
+    if vnnlib_version not in VNNLIB_VERSIONS:
+        raise ValueError(
+            f"vnnlib_version: expected one of {VNNLIB_VERSIONS}, got {vnnlib_version!r}"
+        )
+    form = _form(input_set, input_form)
+    wrapper = _Instance(model, input_set, input_form, dtype)
+    if form == "pixels":
+        name, example = "x", input_set.lower[None].to(dtype)
     else:
-        name, example = "lam", torch.zeros(1, input_set.n)
+        box_input = form == "box" and not isinstance(input_set, Parallelotope)
+        name, example = ("u" if box_input else "lam"), torch.zeros(1, input_set.n, dtype=dtype)
     try:
         with torch.no_grad():
             n_out = wrapper(example).shape[1]
     except Exception as exc:
         raise ValueError(f"model: failed on the input set's first point: {exc}") from exc
     spec.check_output(n_out)
-    text = _vnnlib_text(input_set, spec, name)
+    text = _vnnlib_text(input_set, spec, name, form, DTYPES[dtype], vnnlib_version)
 
     directory.mkdir(parents=True, exist_ok=True)
     onnx_path, vnnlib_path = directory / "model.onnx", directory / "spec.vnnlib"
@@ -129,7 +194,29 @@ def export_instance(directory, model: nn.Module, input_set, spec: ArgmaxSpec, *,
         "n_inputs": input_set.n,
         "n_outputs": spec.n_outputs,
         "n_disjuncts": spec.n_rows,
+        "input_name": name,
+        "input_form": form,
+        "dtype": DTYPES[dtype],
+        "vnnlib_version": vnnlib_version,
     }
+
+
+def point_of_input(input_set, x, input_form: str = "box") -> torch.Tensor:
+    """The set's point of an assignment ``x`` of the exported ONNX input, in float64.
+
+    For a hull exported with ``input_form='box'``: ``λ`` = the spacings of the sorted
+    ``u`` (``(…, n)``); with ``'simplex'``, and for a parallelotope, ``λ = x``; for a box,
+    the image ``x`` reshaped to ``(…, *S)``. Feed the result to ``input_set.image(…,
+    dtype=torch.float64)`` to get the exact image in float64.
+    """
+    if input_form not in INPUT_FORMS:
+        raise ValueError(f"input_form: expected one of {INPUT_FORMS}, got {input_form!r}")
+    x = torch.as_tensor(np.asarray(x), dtype=torch.float64)
+    if isinstance(input_set, Box):
+        return x.reshape(*x.shape[:-1], *input_set.shape)
+    if _form(input_set, input_form) == "box" and not isinstance(input_set, Parallelotope):
+        return lambda_of_box(x)
+    return x
 
 
 def export_onnx(model: nn.Module, example: torch.Tensor, path, *, opset=17) -> Path:
@@ -206,37 +293,74 @@ def read_vnnlib_polytope(path) -> dict:
     }
 
 
-def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str) -> str:
+def _number(x: float) -> str:
+    """``x`` in positional notation with a point (``1.0``, ``-0.0625``, ``0.000001``), the
+    shortest digits that read back as the same float64: VNN-LIB 2.0's grammar has no
+    exponents, and VNN-COMP readers take it too."""
+    return np.format_float_positional(float(x), unique=True, trim="0")
+
+
+def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, version) -> str:
     n, m = input_set.n, spec.n_outputs
     kind = type(input_set).__name__
-    if isinstance(input_set, Box):
-        meaning = f"X_i = pixel i of x (shape (1, {', '.join(map(str, input_set.shape))}), C order)"
+    if form == "pixels":
+        shape = (1, *input_set.shape)
+        meaning = f"X = pixels of x {shape}" + (
+            ", flattened in C order" if version == "1.0" else ""
+        )
         lower = input_set.lower.double().reshape(-1).tolist()
         upper = input_set.upper.double().reshape(-1).tolist()
     else:
-        meaning = "X_i = lambda_i, image = X0 + lam @ D inside model.onnx"
+        shape = (1, n)
         lower, upper = [0.0] * n, [1.0] * n
-    lines = [
-        f"; kpstudy verification instance: {kind} input set, n = {n}",
-        f"; inputs: model.onnx '{name}', {meaning}",
+        meaning = {
+            "box": f"X = u in [0, 1]^{n}; model.onnx sorts u (a ReLU min/max network) and "
+            "maps it onto the simplex: lambda_1 = u_(1), lambda_i = u_(i) - u_(i-1), "
+            "image = (1 - sum lambda) X0 + sum lambda_i X_i, exactly the hull",
+            "simplex": "X = lambda, lambda >= 0 and sum lambda <= 1; image = (1 - sum lambda) "
+            "X0 + sum lambda_i X_i",
+        }[form]
+        if isinstance(input_set, Parallelotope):
+            meaning = "X = lambda in [0, 1]^n; image = X0 + sum lambda_i (X_i - X0)"
+    header = [
+        f"; kpstudy verification instance: {kind} input set, n = {n}, input form {form}",
+        f"; inputs: model.onnx '{name}' {shape} {dtype}, {meaning}",
         f"; outputs: model.onnx 'y' (1, {m}), {spec.n_groups} groups "
         f"{spec.group_sizes}, targets {spec.targets}",
         f"; {spec.n_rows} margin rows; the assertions state a violation (unsat = verified)",
-        "",
-        *(f"(declare-const X_{i} Real)" for i in range(n)),
-        *(f"(declare-const Y_{j} Real)" for j in range(m)),
-        "",
     ]
-    for i in range(n):
-        lines += [f"(assert (>= X_{i} {lower[i]!r}))", f"(assert (<= X_{i} {upper[i]!r}))"]
-    if isinstance(input_set, ConvexHull) and not isinstance(input_set, Parallelotope) and n > 1:
-        # Σλ ≤ 1; for n = 1 it is the bound X_0 ≤ 1 already
-        lines.append(f"(assert (<= (+ {' '.join(f'X_{i}' for i in range(n))}) 1.0))")
-    lines += ["", "(assert (or"]
-    lines += [
-        f"  (and (>= Y_{j} Y_{t}))" for j, t in zip(spec.row_neg.tolist(), spec.row_pos.tolist())
-    ]
-    lines.append("))")
+    rows = list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+    simplex = form == "simplex" and n > 1  # Σλ ≤ 1; for n = 1 it is the bound X_0 ≤ 1 already
+    if version == "1.0":
+        x = [f"X_{i}" for i in range(len(lower))]
+        y = [f"Y_{j}" for j in range(m)]
+        lines = [
+            *header,
+            "",
+            *(f"(declare-const {v} Real)" for v in x),
+            *(f"(declare-const {v} Real)" for v in y),
+            "",
+        ]
+        clauses = [f"  (and (>= {y[j]} {y[t]}))" for j, t in rows]
+    else:
+        x = [f"X[{', '.join(map(str, (0, *idx)))}]" for idx in np.ndindex(*shape[1:])]
+        y = [f"Y[0, {j}]" for j in range(m)]
+        lines = [
+            "(vnnlib-version <2.0>)",
+            *header,
+            "",
+            "(declare-network kpstudy",
+            f"  (declare-input X {dtype} [{', '.join(map(str, shape))}])",
+            f"  (declare-output Y {dtype} [1, {m}])",
+            ")",
+            "",
+        ]
+        clauses = [f"  (>= {y[j]} {y[t]})" for j, t in rows]
+    for v, lo, hi in zip(x, lower, upper):
+        lines += [f"(assert (>= {v} {_number(lo)}))", f"(assert (<= {v} {_number(hi)}))"]
+    if simplex:
+        lines.append(f"(assert (<= (+ {' '.join(x)}) 1.0))")
+    lines += ["", "(assert (or", *clauses, "))"]
     return "\n".join(lines) + "\n"
 
 

@@ -252,6 +252,7 @@ class _Reach:
         within = torch.arange(self.S)
         self.valid = within[None] < torch.tensor(sizes)[:, None]
         self.flat = torch.where(self.valid, torch.tensor(offsets)[:, None] + within, 0)
+        self.uniform = bool(self.valid.all())  # equal groups: the layout is a view
         self.reached = torch.zeros(self.G, self.S, dtype=torch.bool)
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
         with torch.no_grad():
@@ -300,6 +301,8 @@ class _Reach:
 
     def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
         """``y (..., N)`` flat outputs → ``(..., G, S)``, ``fill`` where a group is short."""
+        if self.uniform:  # no copy of the (B, E, N) symbol stack
+            return y.unflatten(-1, (self.G, self.S))
         return torch.where(self.valid, y[..., self.flat], fill)
 
 

@@ -21,7 +21,9 @@ class Counterexample:
     group : int
         A violated group (keypoint).
     margin : float
-        That group's smallest margin ``y[t] − y[j]`` on ``image`` (<= 0).
+        That group's smallest margin ``y[t] − y[j]`` (<= 0) at the set's exact point: the
+        model in float64 on the image computed in float64 (for a float32 model and set,
+        not ``image``, which is that point rounded to float32).
     """
 
     point: torch.Tensor

@@ -65,14 +65,16 @@ class ConvexHull:
         self.gram = flat @ flat.T  # DᵀD, (n, n): image-space lengths of λ-space edges
 
     # -- points -------------------------------------------------------------------------
-    def image(self, lam) -> torch.Tensor:
-        """Images ``X0 + D λ`` for ``lam (..., n)``, shape ``(..., *S)`` in the vertices' dtype."""
+    def image(self, lam, dtype=None) -> torch.Tensor:
+        """Images ``X0 + D λ`` for ``lam (..., n)``, shape ``(..., *S)``, computed in float64
+        and returned in ``dtype`` (default the vertices' dtype; ``torch.float64`` gives the
+        set's exact point to float64 rounding)."""
         lam = torch.as_tensor(lam, dtype=torch.float64)
         if lam.shape[-1:] != (self.n,):
             raise ValueError(f"lam: expected shape (..., {self.n}), got {tuple(lam.shape)}")
         flat = lam.reshape(-1, self.n) @ self.directions.reshape(self.n, -1)
         out = self.origin.reshape(1, -1) + flat
-        return out.reshape(*lam.shape[:-1], *self.shape).to(self.dtype)
+        return out.reshape(*lam.shape[:-1], *self.shape).to(dtype or self.dtype)
 
     def contains_point(self, lam, tol: float = 0.0) -> torch.Tensor:
         """Points of a hull are λ: :meth:`contains_lambda`."""
@@ -244,9 +246,9 @@ class Box:
         self.shape = tuple(lower.shape)
         self.n = math.prod(self.shape)
 
-    def image(self, x) -> torch.Tensor:
-        """A box's points are images: ``x (..., *S)`` in the box's dtype."""
-        return torch.as_tensor(x).to(self.dtype)
+    def image(self, x, dtype=None) -> torch.Tensor:
+        """A box's points are images: ``x (..., *S)`` in ``dtype`` (default the box's)."""
+        return torch.as_tensor(x).to(dtype or self.dtype)
 
     def contains_point(self, x, tol: float = 0.0) -> torch.Tensor:
         """Whether each image ``x (..., *S)`` lies in the box (to ``tol``)."""
