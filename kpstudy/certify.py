@@ -1,4 +1,4 @@
-"""One seed image → one verification instance → one record (paper §5, DESIGN.md §1).
+"""One seed image → one verification instance → one record (paper §5, docs/design.md §1).
 
 :func:`certify` runs the method end to end for a trained backbone, the seed image's
 ground truth and the vertices of a convex hull of perturbed images:
@@ -11,6 +11,9 @@ ground truth and the vertices of a convex hull of perturbed images:
 5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
 6. optionally, on the same hull, the pose-bound method (:mod:`kpstudy.pose_bound`): where
    each keypoint's argmax can go, and the pose-error bound that follows.
+
+Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
+verifying them (:mod:`kpstudy.export_benchmark` writes them for other verifiers).
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
@@ -29,10 +32,10 @@ import torch
 from torch import nn
 
 from kpstudy import _checks
-from kpstudy.allocation import allocate_tolerances
+from kpstudy.allocation import Allocation, allocate_tolerances
 from kpstudy.evaluate import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
-from kpstudy.models.proxy import build_proxy
+from kpstudy.models.proxy import KeypointProxy, build_proxy
 from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
@@ -46,8 +49,9 @@ from kpstudy.preprocess import (
 )
 from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
+from kpstudy.verify.spec import ArgmaxSpec
 
-__all__ = ["SeedImage", "certify", "target_pose_errors"]
+__all__ = ["SeedImage", "VerificationInstance", "build_instance", "certify", "target_pose_errors"]
 
 
 @dataclass(frozen=True)
@@ -99,6 +103,129 @@ def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImag
         np.broadcast_to(seed.K, (B, 3, 3)),
         np.broadcast_to(R, (B, 3, 3)),
         np.broadcast_to(t, (B, 3)),
+    )
+
+
+@dataclass(frozen=True)
+class VerificationInstance:
+    """One seed image's verification instance (steps 1–4 of the module docstring).
+
+    Attributes
+    ----------
+    proxy : KeypointProxy
+        Backbone → per-keypoint cell pooling (eval mode), output ``(B, Σ_k cells_k)``.
+    hull : ConvexHull
+        Over the ``n + 1`` normalised, resized vertices, shape ``(n+1, 3, s, s)``.
+    spec : ArgmaxSpec
+        ``proxy.spec``: each keypoint's target cell wins.
+    inputs : Tensor, (n+1, 3, s, s)
+        The hull's vertices as model inputs (normalised; row 0 the seed image).
+    allocation : Allocation
+        The tolerances (:func:`kpstudy.allocation.allocate_tolerances`): ``dv`` (K × [δu,
+        δv], heatmap px), ``delta``, ``objective``.
+    centers : ndarray of int, (K, 2)
+        Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels: the cells' centres.
+    R : ndarray, (3, 3)
+    t : ndarray, (3,)
+        Nominal pose (PnP on the ground-truth keypoints), object → camera, metres.
+    M : ndarray, (6, 2K)
+        Sensitivity ``dξ/dv`` at the nominal pose, per heatmap pixel (degrees, metres).
+    xi : ndarray, (6,)
+        Ξ's half-widths ``α·[10°, 10°, 10°, 4, 4, 20 m]`` (degrees, metres).
+    """
+
+    proxy: KeypointProxy
+    hull: ConvexHull
+    spec: ArgmaxSpec
+    inputs: torch.Tensor
+    allocation: Allocation
+    centers: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    M: np.ndarray
+    xi: np.ndarray
+
+
+def build_instance(
+    backbone: nn.Module,
+    vertices,
+    seed: SeedImage,
+    *,
+    alpha: float = 1.0,
+    kappa: float = 1.0,
+    w1: float = 1.0,
+    w2: float = 5.0,
+) -> VerificationInstance:
+    """The proxy, hull and spec that :func:`certify` verifies (no verification).
+
+    Parameters
+    ----------
+    backbone : nn.Module
+        Trained heatmap backbone (eval mode) with ``input_size`` and ``heatmap_size``.
+    vertices : ndarray, (n+1, H, W, 3)
+        The seed image first, then the perturbed images, values in [0, 255], at the
+        render's resolution or already at the model input (they are resized by F0).
+    seed : SeedImage
+        The seed image's ground truth.
+    alpha, kappa, w1, w2 : float
+        Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
+        allocation weights.
+
+    Returns
+    -------
+    VerificationInstance
+
+    Raises
+    ------
+    ValueError
+        Naming ``alpha``, ``kappa``, ``backbone``, ``vertices`` or ``seed`` (no valid
+        nominal pose, or a keypoint outside the heatmap).
+    """
+    alpha = float(_checks.positive(alpha, "alpha"))
+    kappa = float(_checks.positive(kappa, "kappa"))
+    for name in ("input_size", "heatmap_size"):
+        if not hasattr(backbone, name):
+            raise ValueError(f"backbone: expected a kpstudy backbone with .{name}")
+    vertices = np.asarray(vertices)
+    if vertices.ndim != 4 or vertices.shape[-1] != 3 or len(vertices) < 2:
+        raise ValueError(
+            f"vertices: expected (n+1, H, W, 3) images with n >= 1, got shape {vertices.shape}"
+        )
+    s, hm = backbone.input_size, backbone.heatmap_size
+    P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
+    eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+
+    nominal = solve_pnp(P, V, K)
+    if not nominal.valid:
+        raise ValueError(
+            "seed: PnP on the ground-truth keypoints gives no valid pose (smallest depth "
+            f"{nominal.min_depth:.4g} m, residual {nominal.rms_px:.3g} px)"
+        )
+    R, t = nominal
+    factors = scale_factors(seed.image_size, hm)
+    M = pose_sensitivity(P, V, K, R, t, scale=factors)
+    allocation = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
+    centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
+    if np.any((centers < 0) | (centers >= hm)):
+        k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
+        raise ValueError(
+            f"seed: keypoint {k} lies outside the {hm}×{hm} heatmap at {centers[k].tolist()} "
+            "(only seeds with every keypoint in the image can be certified)"
+        )
+    proxy = build_proxy(backbone, keypoint_pooling(centers, allocation.dv, (hm, hm)), centers)
+    images = np.stack([resize_to_input(v, s) for v in vertices])
+    x = torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous()
+    return VerificationInstance(
+        proxy=proxy.eval(),
+        hull=ConvexHull(x),
+        spec=proxy.spec,
+        inputs=x,
+        allocation=allocation,
+        centers=centers,
+        R=R,
+        t=t,
+        M=M,
+        xi=np.concatenate([eps_r, eps_t]),
     )
 
 
@@ -171,42 +298,13 @@ def certify(
     kappa = float(_checks.positive(kappa, "kappa"))
     if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
         raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
-    for name in ("input_size", "heatmap_size"):
-        if not hasattr(backbone, name):
-            raise ValueError(f"backbone: expected a kpstudy backbone with .{name}")
-    vertices = np.asarray(vertices)
-    if vertices.ndim != 4 or vertices.shape[-1] != 3 or len(vertices) < 2:
-        raise ValueError(
-            f"vertices: expected (n+1, H, W, 3) images with n >= 1, got shape {vertices.shape}"
-        )
-    s, hm = backbone.input_size, backbone.heatmap_size
+    instance = build_instance(backbone, vertices, seed, alpha=alpha, kappa=kappa, w1=w1, w2=w2)
+    hull, allocation, xi = instance.hull, instance.allocation, instance.xi
+    R, t = instance.R, instance.t
     P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
-    eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+    x = instance.inputs
 
-    nominal = solve_pnp(P, V, K)
-    if not nominal.valid:
-        raise ValueError(
-            "seed: PnP on the ground-truth keypoints gives no valid pose (smallest depth "
-            f"{nominal.min_depth:.4g} m, residual {nominal.rms_px:.3g} px)"
-        )
-    R, t = nominal
-    factors = scale_factors(seed.image_size, hm)
-    M = pose_sensitivity(P, V, K, R, t, scale=factors)
-    allocation = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
-    centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
-    if np.any((centers < 0) | (centers >= hm)):
-        k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
-        raise ValueError(
-            f"seed: keypoint {k} lies outside the {hm}×{hm} heatmap at {centers[k].tolist()} "
-            "(only seeds with every keypoint in the image can be certified)"
-        )
-    proxy = build_proxy(backbone, keypoint_pooling(centers, allocation.dv, (hm, hm)), centers)
-    images = np.stack([resize_to_input(v, s) for v in vertices])
-    x = torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous()
-    hull = ConvexHull(x)
-
-    result = verify(proxy.eval(), hull, proxy.spec, method=method, timeout=timeout)
-    xi = np.concatenate([eps_r, eps_t])
+    result = verify(instance.proxy, hull, instance.spec, method=method, timeout=timeout)
     seed_error = target_pose_errors(backbone, x[:1], seed, R, t)[0]
     record = {
         "image_id": seed.image_id,

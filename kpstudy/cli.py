@@ -1,5 +1,5 @@
-"""Command line: ``python -m kpstudy reproduce|train|evaluate|campaign``. Bad arguments exit with
-status 2 and a message naming the argument."""
+"""Command line: ``python -m kpstudy reproduce|train|evaluate|campaign|export-benchmark``. Bad
+arguments exit with status 2 and a message naming the argument."""
 
 from __future__ import annotations
 
@@ -167,6 +167,30 @@ def main(argv=None) -> int:
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
     ca.add_argument("--out", help="also write the records as OUT.csv and OUT.md")
+
+    eb = sub.add_parser(
+        "export-benchmark",
+        help="write a campaign grid's instances as ONNX + VNN-LIB (the VNN-COMP layout)",
+    )
+    eb.add_argument("--checkpoint", required=True)
+    eb.add_argument("--data", required=True, help="dataset folder with perturbations/")
+    eb.add_argument("--kind", required=True, help="objects, blocks, brightness or contrast")
+    eb.add_argument("--out", required=True, help="benchmark folder; must be new or empty")
+    eb.add_argument("--alphas", type=float, nargs="+", default=[1.0])
+    eb.add_argument("--kappas", type=float, nargs="+", default=[1.0])
+    eb.add_argument("--ms", type=int, nargs="+", default=[2], help="hull sizes (local kinds)")
+    eb.add_argument("--levels", type=float, nargs="+", help="b or c (global kinds; default all)")
+    eb.add_argument("--seeds", type=int, help="first N seed images (default all)")
+    eb.add_argument(
+        "--timeout", type=float, default=60.0, help="seconds per instance (instances.csv)"
+    )
+    eb.add_argument(
+        "--input-form",
+        default="box",
+        help="box (default: u in [0,1]^n, exact hull) or simplex (lambda, sum <= 1)",
+    )
+    eb.add_argument("--vnnlib-version", default="1.0", help="1.0 (VNN-COMP, default) or 2.0")
+    eb.add_argument("--dtype", default="float32", help="float32 (default) or float64 ONNX")
     args = parser.parse_args(argv)
 
     try:
@@ -195,6 +219,8 @@ def main(argv=None) -> int:
             _train(args)
         elif args.command == "evaluate":
             _evaluate(args)
+        elif args.command == "export-benchmark":
+            _export_benchmark(args, sys.argv[1:] if argv is None else argv)
         else:
             _campaign(args)
     except (
@@ -307,6 +333,44 @@ def _campaign(args) -> None:
     if args.out:
         write_table(frame, args.out)
     print(frame["status"].value_counts().to_string() if len(frame) else "no instances")
+
+
+def _export_benchmark(args, argv) -> None:
+    """Export the grid's instances; bad input (a missing checkpoint, an unknown kind, an
+    ``--out`` that is a file or a non-empty folder, …) is refused before anything is
+    written."""
+    import shlex
+
+    from kpstudy.campaign import grid
+    from kpstudy.export_benchmark import export_benchmark
+
+    if not Path(args.checkpoint).is_file():
+        raise FileNotFoundError(f"checkpoint: no file at {args.checkpoint}")
+    if not Path(args.data, "annotations.json").is_file():
+        raise FileNotFoundError(f"data: no data_gen dataset at {args.data}")
+    instances = grid(
+        args.data,
+        args.kind,
+        alphas=args.alphas,
+        kappas=args.kappas,
+        ms=args.ms,
+        levels=args.levels,
+        seeds=args.seeds,
+    )
+    done = export_benchmark(
+        args.checkpoint,
+        args.data,
+        args.out,
+        instances,
+        timeout=args.timeout,
+        input_form=args.input_form,
+        vnnlib_version=args.vnnlib_version,
+        dtype=args.dtype,
+        command=shlex.join(["python", "-m", "kpstudy", *map(str, argv)]),
+    )
+    for name, reason in done["skipped"]:
+        print(f"kpstudy export-benchmark: left out {name}: {reason}", file=sys.stderr)
+    print(f"{len(done['written'])} instances written to {done['out']}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,351 @@
+"""The study's verification instances as a VNN-COMP benchmark (issue 28).
+
+:func:`export_benchmark` writes each instance of a campaign grid
+(:func:`kpstudy.campaign.grid`) in the layout of the VNN-COMP benchmarks, so that any
+verifier that reads ONNX + VNN-LIB runs exactly what :func:`kpstudy.certify.certify`
+verifies::
+
+    DIR/onnx/NAME.onnx        the proxy with the hull folded in (kpstudy.verify.export)
+    DIR/vnnlib/NAME.vnnlib    the input set and the violation of "each keypoint's cell wins"
+    DIR/instances.csv         onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT (no header)
+    DIR/README.md             how the files were made and what each instance means
+
+Each instance's vertices are those of the campaign (:func:`data_gen.perturb.hull_vertices`
+with the campaign's default ``hull_seed``), its proxy, hull and spec those of
+:func:`kpstudy.certify.build_instance`. The files depend only on the arguments, the
+checkpoint, the dataset and the code (no dates, no paths but the command's own): a rerun
+writes the same bytes. The folder is built beside ``DIR`` (``.DIR.partial``; an
+interrupted run leaves it there, and the next run rewrites it) and moved onto ``DIR``
+at the end: ``DIR`` appears complete or not at all.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["DTYPES", "export_benchmark", "instance_name"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+class _NothingWritten(Exception):
+    """No instance of the grid could be built (the staging folder is removed)."""
+
+
+def _num(x: float) -> str:
+    """``x`` in positional notation, no trailing point (``1``, ``1.5``, ``0.0005``)."""
+    return np.format_float_positional(float(x), unique=True, trim="-")
+
+
+def instance_name(instance) -> str:
+    """A file-name stem for a :class:`kpstudy.campaign.Instance`: kind, seed image, hull
+    (``m2_ov`` / ``m2_nov``, or ``l2`` for a level), ``a<α>_k<κ>``, e.g.
+    ``blocks_481_m2_ov_a1_k1.5`` or ``contrast_481_l0.005_a1_k1``."""
+    if instance.level is not None:
+        hull = f"l{_num(instance.level)}"
+    else:
+        hull = f"m{instance.m}_{'ov' if instance.overlapping else 'nov'}"
+    allocation = f"a{_num(instance.alpha)}_k{_num(instance.kappa)}"
+    return f"{instance.kind}_{instance.image_id}_{hull}_{allocation}"
+
+
+def _sha256(path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _check_out(out) -> Path:
+    """``out`` may be missing or an empty folder (one line naming ``out`` otherwise)."""
+    from kpstudy.io import check_writable
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"out: {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()):
+        raise FileExistsError(f"out: {out} is not empty; expected a new or empty folder")
+    return check_writable(out, "out")
+
+
+def export_benchmark(
+    checkpoint,
+    data_dir,
+    out,
+    instances,
+    *,
+    timeout: float = 60.0,
+    input_form: str = "box",
+    vnnlib_version: str = "1.0",
+    dtype: str = "float32",
+    command: str | None = None,
+    progress: bool = False,
+) -> dict:
+    """Write ``instances`` as a VNN-COMP benchmark folder ``out``.
+
+    Parameters
+    ----------
+    checkpoint : path
+        A kpstudy checkpoint (``python -m kpstudy train``).
+    data_dir : path
+        The data_gen dataset with the instances' perturbation sets.
+    out : path
+        The benchmark folder; must not exist or be empty. Built beside it and moved onto
+        it when every instance is written.
+    instances : list of kpstudy.campaign.Instance
+        Usually :func:`kpstudy.campaign.grid`'s; duplicates are written once.
+    timeout : float
+        Seconds per instance, the third column of ``instances.csv``.
+    input_form, vnnlib_version :
+        Of :func:`kpstudy.verify.export.export_instance` (``'box'`` / ``'simplex'``,
+        ``'1.0'`` / ``'2.0'``).
+    dtype : {'float32', 'float64'}
+        Precision of the ONNX graphs.
+    command : str, optional
+        The command line to record in README.md (default: a call of this function).
+    progress : bool
+        A progress bar.
+
+    Returns
+    -------
+    dict
+        ``out`` (Path), ``written`` (instance names, in order) and ``skipped``
+        (``(name, reason)`` of the seeds :func:`kpstudy.certify.build_instance` refuses:
+        no valid nominal pose, a keypoint outside the heatmap).
+
+    Raises
+    ------
+    ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError
+        One line naming the argument (``checkpoint``, ``data``, ``out``, ``timeout``,
+        ``input_form``, ``vnnlib_version``, ``dtype``, ``instances``), before anything is
+        written.
+    """
+    from tqdm.auto import tqdm
+
+    from data_gen.perturb import hull_vertices
+    from kpstudy import __version__
+    from kpstudy.campaign import Settings, _context, provenance
+    from kpstudy.certify import build_instance
+    from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
+    from kpstudy.verify.export import INPUT_FORMS, VNNLIB_VERSIONS, export_instance
+
+    checkpoint, data_dir = Path(checkpoint), Path(data_dir)
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint: no file at {checkpoint}")
+    if not (data_dir / "annotations.json").is_file():
+        raise FileNotFoundError(f"data: no data_gen dataset at {data_dir}")
+    if isinstance(timeout, bool) or not float(timeout) > 0 or not np.isfinite(float(timeout)):
+        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
+    if input_form not in INPUT_FORMS:
+        raise ValueError(
+            f"input_form: expected one of {', '.join(INPUT_FORMS)}, got {input_form!r}"
+        )
+    if vnnlib_version not in VNNLIB_VERSIONS:
+        raise ValueError(
+            f"vnnlib_version: expected one of {', '.join(VNNLIB_VERSIONS)}, got {vnnlib_version!r}"
+        )
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype: expected one of {', '.join(DTYPES)}, got {dtype!r}")
+    instances = list(dict.fromkeys(instances))
+    if not instances:
+        raise ValueError("instances: the grid is empty; nothing to export")
+    out = _check_out(out)
+    settings = Settings(str(checkpoint), str(data_dir), timeout=float(timeout))
+    backbone, seed_of = _context(str(checkpoint), str(data_dir))  # refuses a bad checkpoint
+    origin = provenance(settings)
+    names = [instance_name(i) for i in instances]
+    config = {
+        "provenance": origin,
+        "instances": [i.key for i in instances],
+        "timeout": float(timeout),
+        "input_form": input_form,
+        "vnnlib_version": vnnlib_version,
+        "dtype": dtype,
+    }
+    written, skipped, sizes = [], [], {}
+    staged = None
+    try:
+        with staged_directory(out, config) as (staging, _):
+            staged = staging
+            for sub in ("onnx", "vnnlib"):
+                (staging / sub).mkdir(exist_ok=True)
+            work = staging / ".instance"
+            for instance, name in tqdm(
+                list(zip(instances, names)), desc="instances", unit="inst", disable=not progress
+            ):
+                onnx_path = staging / "onnx" / f"{name}.onnx"
+                vnnlib_path = staging / "vnnlib" / f"{name}.vnnlib"
+                vertices = hull_vertices(
+                    data_dir,
+                    instance.image_id,
+                    instance.kind,
+                    instance.m,
+                    instance.overlapping,
+                    settings.hull_seed,
+                    level=instance.level,
+                )
+                try:
+                    built = build_instance(
+                        backbone,
+                        vertices,
+                        seed_of(instance.image_id),
+                        alpha=instance.alpha,
+                        kappa=instance.kappa,
+                    )
+                except ValueError as exc:  # a seed that cannot be certified: no instance
+                    skipped.append((name, str(exc)))
+                    continue
+                if work.exists():
+                    shutil.rmtree(work)
+                info = export_instance(
+                    work,
+                    built.proxy,
+                    built.hull,
+                    built.spec,
+                    input_form=input_form,
+                    dtype=DTYPES[dtype],
+                    vnnlib_version=vnnlib_version,
+                )
+                text = (work / "spec.vnnlib").read_text()
+                write_text_atomic(vnnlib_path, text.replace("model.onnx", f"onnx/{name}.onnx"))
+                os.replace(work / "model.onnx", onnx_path)  # the pair is complete only now
+                written.append(name)
+                sizes[name] = (info["n_inputs"], info["n_outputs"], info["n_disjuncts"])
+            if work.exists():
+                shutil.rmtree(work)
+            if not written:
+                raise _NothingWritten(
+                    "instances: no seed image of the grid can be certified ("
+                    + "; ".join(f"{n}: {r}" for n, r in skipped[:3])
+                    + ")"
+                )
+            rows = [f"onnx/{n}.onnx,vnnlib/{n}.vnnlib,{_num(timeout)}" for n in written]
+            write_text_atomic(staging / "instances.csv", "\n".join(rows) + "\n")
+            readme = _readme(
+                command
+                or (
+                    f"kpstudy.export_benchmark.export_benchmark({str(checkpoint)!r}, "
+                    f"{str(data_dir)!r}, {str(out)!r}, …)"
+                ),
+                checkpoint,
+                data_dir,
+                origin,
+                __version__,
+                source_fingerprint(),
+                instances,
+                names,
+                sizes,
+                skipped,
+                float(timeout),
+                input_form,
+                vnnlib_version,
+                dtype,
+            )
+            write_text_atomic(staging / "README.md", readme)
+    except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
+        shutil.rmtree(staged, ignore_errors=True)
+        raise ValueError(str(exc)) from None
+    return {"out": out, "written": written, "skipped": skipped}
+
+
+def _readme(
+    command,
+    checkpoint,
+    data_dir,
+    origin,
+    version,
+    code,
+    instances,
+    names,
+    sizes,
+    skipped,
+    timeout,
+    input_form,
+    vnnlib_version,
+    dtype,
+) -> str:
+    versions = ", ".join(f"{p} {importlib.metadata.version(p)}" for p in ("torch", "onnx", "numpy"))
+    form = {
+        "box": "`u` in the box [0, 1]^n, mapped exactly onto the simplex inside the network "
+        "(a ReLU sorting layer, then the spacings λ₁ = u₍₁₎, λᵢ = u₍ᵢ₎ − u₍ᵢ₋₁₎): every "
+        "verifier that takes box inputs runs the exact hull",
+        "simplex": "`lam` = λ with λ ≥ 0 and the linear input constraint Σ λ ≤ 1 (only "
+        "verifiers that accept linear input constraints read it)",
+    }[input_form]
+    lines = [
+        "# kpstudy keypoint-proxy verification benchmark",
+        "",
+        "Made with",
+        "",
+        "```",
+        command,
+        "```",
+        "",
+        f"- kpstudy {version} (code fingerprint `{code}`; {versions})",
+        f"- checkpoint `{checkpoint.name}`, SHA-256 `{origin['checkpoint']}`",
+        f"- dataset `{data_dir.name}`, SHA-256 `{origin['dataset']}` (over its "
+        "`annotations.json` and the perturbation sets' `meta.json`)",
+        f"- {len(sizes)} instances, input form `{input_form}`, ONNX {dtype}, VNN-LIB "
+        f"{vnnlib_version}, timeout {_num(timeout)} s each",
+        "",
+        "Layout as in the VNN-COMP benchmarks: `onnx/NAME.onnx`, `vnnlib/NAME.vnnlib`, and "
+        "`instances.csv` with one row `onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT` per "
+        "instance (no header).",
+        "",
+        "## What an instance is",
+        "",
+        "One seed image of the dataset's test split and `m` perturbed images of it (the "
+        "perturbation kind: occluding objects, 3×3 blocks of random values, or brightness / "
+        "contrast ±level), resized to the model input and normalised: the n + 1 = m + 1 "
+        "vertices of a convex hull of images. The input set is that hull, exactly: the "
+        "network's leading layers map the input onto the barycentric weights w of the "
+        "vertices and compute `w @ V` with the vertices themselves. Its input is " + form + ".",
+        "",
+        "The network is the study's *proxy*: the trained heatmap backbone, then per "
+        "keypoint an average pooling of its heatmap channel into cells of side 2δv + 1 "
+        "centred on the rounded ground-truth keypoint (the tolerances δv of the allocation "
+        "`κ |M| δv ≤ α ε` at the seed's nominal pose, ε = α·[10°, 10°, 10°, 4, 4, 20 m]), "
+        "the cells of all keypoints concatenated into the output `y`.",
+        "",
+        "The property is that every keypoint's target cell (the one holding its ground "
+        "truth) has the largest pooled value of its keypoint's cells, on every image of the "
+        "hull. The VNN-LIB file states its *violation*, one disjunct `Y_j ≥ Y_t` per other "
+        "cell j of a keypoint with target t: `unsat` means the property holds (kpstudy's "
+        "`holds`), a satisfying input is a counterexample (`violated`). Ties count as "
+        "violations.",
+        "",
+        "Names: `KIND_IMAGEID_HULL_aALPHA_kKAPPA`, HULL `mM_ov` / `mM_nov` (m perturbed "
+        "images overlapping the airplane or not) or `lLEVEL` (brightness b, contrast c).",
+        "",
+        "## Instances",
+        "",
+        "| name | kind | image | m | overlapping | level | α | κ | n | outputs | disjuncts |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for instance, name in zip(instances, names):
+        if name not in sizes:
+            continue
+        cells = [
+            name,
+            instance.kind,
+            instance.image_id,
+            "–" if instance.m is None else instance.m,
+            "–" if instance.overlapping is None else instance.overlapping,
+            "–" if instance.level is None else _num(instance.level),
+            _num(instance.alpha),
+            _num(instance.kappa),
+            *sizes[name],
+        ]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+    if skipped:
+        lines += ["", "## Left out", "", "Seed images that cannot be certified:", ""]
+        lines += [f"- {name}: {reason}" for name, reason in skipped]
+    return "\n".join(lines) + "\n"

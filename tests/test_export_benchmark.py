@@ -1,0 +1,245 @@
+"""``python -m kpstudy export-benchmark``: the study's instances in the VNN-COMP layout,
+on the tiny study of tests/test_campaign.py."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import shutil
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from data_gen.perturb import hull_vertices
+from kpstudy import __version__
+from kpstudy.campaign import _context, grid
+from kpstudy.certify import build_instance
+from kpstudy.cli import main
+from kpstudy.export_benchmark import instance_name
+from kpstudy.verify.export import read_vnnlib_polytope
+from kpstudy.verify.simplex_map import box_of_lambda
+from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
+
+BLOCKS = ["--kind", "blocks", "--ms", "1", "--seeds", "1", "--timeout", "30"]
+BRIGHTNESS = ["--kind", "brightness", "--levels", "1", "--seeds", "1"]
+
+
+def export(made, out, *args):
+    """``python -m kpstudy export-benchmark`` in this process on ``made`` = (data, checkpoint)."""
+    data, checkpoint = made
+    return main(
+        ["export-benchmark", "--checkpoint", str(checkpoint), "--data", str(data)]
+        + ["--out", str(out), *args]
+    )
+
+
+def files(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def bench(study, tmp_path_factory):  # noqa: F811
+    """The blocks grid (box form, VNN-LIB 1.0, float32) exported once."""
+    out = tmp_path_factory.mktemp("bench") / "blocks"
+    assert export(study, out, *BLOCKS) == 0
+    return out
+
+
+def rows_of(out):
+    with open(out / "instances.csv", newline="") as f:
+        return list(csv.reader(f))
+
+
+def test_layout_and_instances_csv(study, bench):  # noqa: F811
+    data, checkpoint = study
+    names = [
+        instance_name(i) for i in grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)
+    ]
+    assert len(names) == 2  # one seed image: a non-overlapping and an overlapping block
+    assert files(bench) == sorted(
+        ["README.md", "instances.csv"]
+        + [f"onnx/{n}.onnx" for n in names]
+        + [f"vnnlib/{n}.vnnlib" for n in names]
+    )
+    assert [p.name for p in bench.parent.iterdir()] == [bench.name]  # no staging left
+    text = (bench / "instances.csv").read_text()
+    assert text.endswith("\n") and "\r" not in text
+    rows = rows_of(bench)
+    assert rows == [[f"onnx/{n}.onnx", f"vnnlib/{n}.vnnlib", "30"] for n in names]
+    readme = (bench / "README.md").read_text()
+    digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()
+    assert digest in readme and f"kpstudy {__version__}" in readme
+    assert "python -m kpstudy export-benchmark --checkpoint" in readme
+    assert all(n in readme for n in names) and "target cell" in readme
+    for n in names:  # the spec's comments name the instance's own ONNX file
+        assert f"onnx/{n}.onnx" in (bench / "vnnlib" / f"{n}.vnnlib").read_text()
+
+
+def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
+    """Each ONNX (onnxruntime, float32) gives the proxy's outputs at the hull's vertices and
+    at Dirichlet samples, its input u mapped onto λ by the sorted spacings; the VNN-LIB
+    file holds one disjunct per margin row of the proxy's spec."""
+    data, checkpoint = study
+    backbone, seed_of = _context(str(checkpoint), str(data))
+    for instance in grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1):
+        name = instance_name(instance)
+        vertices = hull_vertices(
+            data, instance.image_id, "blocks", instance.m, instance.overlapping, 0
+        )
+        built = build_instance(backbone, vertices, seed_of(instance.image_id))
+        hull, spec = built.hull, built.spec
+        sess = ort.InferenceSession(
+            str(bench / "onnx" / f"{name}.onnx"), providers=["CPUExecutionProvider"]
+        )
+        (inp,) = sess.get_inputs()
+        assert (inp.name, inp.shape) == ("u", [1, hull.n])
+        lam = torch.cat([torch.zeros(1, hull.n), torch.eye(hull.n)]).double()
+        lam = torch.cat([lam, hull.sample(4, seed=3)])
+        with torch.no_grad():
+            want = built.proxy(hull.image(lam)).numpy()
+        for u, y in zip(box_of_lambda(lam), want):
+            got = sess.run(["y"], {"u": u[None].float().numpy()})[0][0]
+            np.testing.assert_allclose(got, y, rtol=1e-4, atol=1e-4 * np.abs(want).max())
+        poly = read_vnnlib_polytope(bench / "vnnlib" / f"{name}.vnnlib")
+        assert (poly["n_inputs"], poly["n_outputs"]) == (hull.n, spec.n_outputs)
+        assert poly["disjuncts"] == list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+
+
+def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
+    """certify's record comes from build_instance's proxy, hull and spec."""
+    from kpstudy.certify import certify
+    from kpstudy.verify import verify
+
+    data, checkpoint = study
+    backbone, seed_of = _context(str(checkpoint), str(data))
+    (image_id, *_) = sorted({i.image_id for i in grid(data, "blocks", alphas=[1], kappas=[1])})
+    vertices = hull_vertices(data, image_id, "blocks", 2, True, 0)
+    built = build_instance(backbone, vertices, seed_of(image_id), alpha=0.5)
+    record = certify(backbone, vertices, seed_of(image_id), alpha=0.5, timeout=30, check_samples=0)
+    assert record["dv"] == built.allocation.dv.tolist() and record["n"] == built.hull.n == 2
+    assert built.spec is built.proxy.spec and built.inputs.shape == (3, 3, 64, 64)
+    assert built.M.shape == (6, 46) and built.xi.shape == (6,) and built.R.shape == (3, 3)
+    result = verify(built.proxy, built.hull, built.spec, timeout=30)
+    assert result.status == record["status"]
+    assert list(result.group_status) == record["group_status"]
+
+
+def test_rerun_gives_the_same_bytes(study, bench, tmp_path):  # noqa: F811
+    """The same arguments write the same files, byte for byte (the first result moved
+    aside, so that the command, --out included, is the same)."""
+    first = tmp_path / "first"
+    shutil.copytree(bench, first)
+    # the README records the command, --out included: rerun into the very same path
+    moved = bench.parent / "moved"
+    bench.rename(moved)
+    try:
+        assert export(study, bench, *BLOCKS) == 0
+        assert files(bench) == files(first)
+        for name in files(first):
+            assert (bench / name).read_bytes() == (first / name).read_bytes(), name
+    finally:
+        shutil.rmtree(bench)
+        moved.rename(bench)
+
+
+def test_vnnlib_2_simplex_form_parses(study, tmp_path):  # noqa: F811
+    vnnlib = pytest.importorskip("vnnlib")
+    out = tmp_path / "bright"
+    args = [*BRIGHTNESS, "--vnnlib-version", "2.0", "--input-form", "simplex"]
+    assert export(study, out, *args) == 0
+    ((name, spec_file, timeout),) = rows_of(out)
+    assert timeout == "60" and (out / name).is_file()
+    query = vnnlib.parse_query_file(str(out / spec_file))
+    ((x,),) = [net.inputs for net in query.networks]
+    assert x.dtype == vnnlib.DType.F32 and list(x.shape) == [1, 2]
+    sess = ort.InferenceSession(str(out / name), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["lam"]
+    assert "Σ λ ≤ 1" in (out / "README.md").read_text()
+
+
+def _refused(capsys, word, call):
+    with pytest.raises(SystemExit) as exc:
+        call()
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "export-benchmark" in lines[0] and word in lines[0], lines
+
+
+def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # noqa: F811
+    data, checkpoint = study
+    out = tmp_path / "out"
+    _refused(
+        capsys,
+        "checkpoint",
+        lambda: main(
+            ["export-benchmark", "--checkpoint", str(tmp_path / "none.pt"), "--data", str(data)]
+            + ["--out", str(out), *BLOCKS]
+        ),
+    )
+    _refused(
+        capsys,
+        "data",
+        lambda: main(
+            ["export-benchmark", "--checkpoint", str(checkpoint), "--data", str(tmp_path)]
+            + ["--out", str(out), *BLOCKS]
+        ),
+    )
+    bad_kind = ["--kind", "rain", "--seeds", "1"]
+    _refused(capsys, "kind", lambda: export(study, out, *bad_kind))
+    _refused(capsys, "input_form", lambda: export(study, out, *BLOCKS, "--input-form", "cube"))
+    _refused(capsys, "dtype", lambda: export(study, out, *BLOCKS, "--dtype", "float16"))
+    not_a_checkpoint = tmp_path / "notes.pt"
+    not_a_checkpoint.write_text("hello")
+    _refused(
+        capsys,
+        "checkpoint",
+        lambda: main(
+            ["export-benchmark", "--checkpoint", str(not_a_checkpoint), "--data", str(data)]
+            + ["--out", str(out), *BLOCKS]
+        ),
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.pt"]
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "keep.txt").write_text("mine")
+    _refused(capsys, "out", lambda: export(study, full, *BLOCKS))
+    assert files(full) == ["keep.txt"]
+    _refused(capsys, "out", lambda: export(study, full / "keep.txt", *BLOCKS))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "notes.pt"]
+
+
+def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatch):  # noqa: F811
+    """A seed build_instance refuses is listed in README.md; a grid of only such seeds is
+    refused, naming ``instances``, with nothing left behind."""
+    import kpstudy.certify
+    from kpstudy.export_benchmark import export_benchmark
+
+    data, checkpoint = study
+    instances = grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)
+    real = kpstudy.certify.build_instance
+
+    def refuse_overlapping(backbone, vertices, seed, **kw):
+        if (
+            vertices[1].tobytes()
+            == hull_vertices(data, seed.image_id, "blocks", 1, True)[1].tobytes()
+        ):
+            raise ValueError("seed: keypoint 3 lies outside the heatmap (test)")
+        return real(backbone, vertices, seed, **kw)
+
+    monkeypatch.setattr(kpstudy.certify, "build_instance", refuse_overlapping)
+    done = export_benchmark(checkpoint, data, tmp_path / "some", instances)
+    ((name, reason),) = done["skipped"]
+    assert name.endswith("_ov_a1_k1") and done["written"] == [instance_name(instances[0])]
+    readme = (tmp_path / "some" / "README.md").read_text()
+    assert "## Left out" in readme and reason in readme
+    assert len(rows_of(tmp_path / "some")) == 1
+
+    def refuse(*args, **kw):
+        raise ValueError("seed: PnP gives no valid pose (test)")
+
+    monkeypatch.setattr(kpstudy.certify, "build_instance", refuse)
+    with pytest.raises(ValueError, match="^instances: no seed image"):
+        export_benchmark(checkpoint, data, tmp_path / "none", instances)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["some"]

@@ -1,0 +1,188 @@
+"""Marabou (maraboupy) as a test oracle for kpstudy.verify.verify on exported instances.
+
+Small keypoint-like proxies (a conv backbone, two heatmap channels, each pooled into its
+keypoint's cells) over hulls of n = 1…4 perturbed images are exported in the *simplex*
+input form (``λ ≥ 0``, ``Σ λ ≤ 1`` in the VNN-LIB file) and handed to Marabou as ONNX +
+VNN-LIB, its own readers. Every instance Marabou decides must agree with ``verify``, and
+each of its counterexamples, mapped back to ``λ``, must lie in the hull and have a float64
+margin ≤ 0 on the torch model at the exact hull point, up to a solver tolerance.
+
+Marabou 2.0.0's ONNX reader has no ``Pad``, ``AveragePool`` or ``Slice``, so the pooling
+here is one ``Gemm`` (the cell pools' matrices, block-diagonal over the channels), and
+it misreads the box input form's graphs; the two xfail tests below record both, so that
+they flip when Marabou is fixed.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import time
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from kpstudy.pooling import build_cell_pool
+from kpstudy.verify import ConvexHull, verify
+from kpstudy.verify.export import export_instance, point_of_input
+from kpstudy.verify.spec import ArgmaxSpec
+
+pytest.importorskip("maraboupy")
+
+pytestmark = [
+    pytest.mark.marabou,
+    pytest.mark.filterwarnings("ignore:Tensorflow parser is unavailable:UserWarning"),
+]
+
+SIDE = 6
+#: Counterexamples' float64 margins may exceed 0 by this much, times 1 + max |y(X0)|:
+#: Marabou's points satisfy ``Y_j ≥ Y_t`` to its arithmetic's tolerance (boundary points
+#: of +1e-16 were seen).
+TOLERANCE = 1e-9
+#: Seconds Marabou gets per instance (a timeout is not a disagreement).
+MARABOU_SECONDS = 10
+
+
+class TinyProxy(nn.Module):
+    """Conv(1→3) → ReLU → Conv(3→2): two 6×6 heatmaps; each pooled into its keypoint's
+    cells (:func:`kpstudy.pooling.build_cell_pool`) by one linear layer, whose bias raises
+    each target cell so that the seed image ``x0`` has margin ``seed_margin`` in every
+    group. Input ``(B, 1, 6, 6)``, output ``(B, 9 + 15)``."""
+
+    def __init__(self, seed: int, x0: torch.Tensor, seed_margin: float = 0.05) -> None:
+        super().__init__()
+        torch.manual_seed(seed)
+        self.c1 = nn.Conv2d(1, 3, 3, padding=1)
+        self.c2 = nn.Conv2d(3, 2, 3, padding=1)
+        made = [
+            build_cell_pool(c, d, (SIDE, SIDE)) for c, d in (((1, 2), (1, 1)), ((4, 3), (0, 1)))
+        ]
+        eye = torch.eye(SIDE * SIDE).reshape(-1, 1, SIDE, SIDE)
+        with torch.no_grad():
+            mats = [pool(eye).flatten(1).T for pool, _ in made]  # (cells, H·W) each
+        sizes = [len(m) for m in mats]
+        self.spec = ArgmaxSpec(sizes, [t for _, t in made])
+        self.pool = nn.Linear(2 * SIDE * SIDE, sum(sizes))
+        with torch.no_grad():
+            self.pool.weight.copy_(torch.block_diag(*mats))
+            self.pool.bias.zero_()
+            y0 = self(x0)[0]
+            for k, (start, stop) in enumerate(zip(self.spec.offsets[:-1], self.spec.offsets[1:])):
+                group = y0[start:stop]
+                target = self.spec.targets[k]
+                others = torch.cat([group[:target], group[target + 1 :]])
+                self.pool.bias[start + target] = others.max() - group[target] + seed_margin
+        self.eval()
+
+    def forward(self, x):
+        return self.pool(self.c2(torch.relu(self.c1(x))).flatten(1))
+
+
+def make_instance(i: int):
+    """Instance ``i``: n = 1 + i mod 4, spread 0.05 / 0.2 / 0.5 by i mod 3."""
+    n, spread = 1 + i % 4, (0.05, 0.2, 0.5)[i % 3]
+    g = torch.Generator().manual_seed(i)
+    x0 = torch.randn(1, 1, SIDE, SIDE, generator=g)
+    hull = ConvexHull(
+        x0 + spread * torch.cat([torch.zeros_like(x0), torch.randn(n, *x0.shape[1:], generator=g)])
+    )
+    return TinyProxy(i, x0), hull
+
+
+@pytest.fixture(scope="module")
+def marabou():
+    from tests.marabou_worker import MarabouProcess
+
+    process = MarabouProcess()
+    yield process
+    process.close()
+
+
+def test_marabou_agrees_with_verify_on_simplex_form(tmp_path, marabou):
+    """≥ 20 of 24 instances decided by Marabou, every one as ``verify`` decides it (both
+    answers among them), every counterexample a point of the hull that fails in float64."""
+    rows = []
+    for i in range(24):
+        model, hull = make_instance(i)
+        spec = model.spec
+        start = time.perf_counter()
+        ours = verify(model, hull, spec, timeout=30)
+        ours_time = time.perf_counter() - start
+        info = export_instance(tmp_path / str(i), model, hull, spec, input_form="simplex")
+        code, x, seconds = marabou.solve(info["onnx"], info["vnnlib"], MARABOU_SECONDS)
+        assert not code.startswith("error"), (i, code)
+        rows.append((i, hull.n, ours.status, code, ours_time, seconds))
+        if code in ("sat", "unsat"):
+            assert {"sat": "violated", "unsat": "holds"}[code] == ours.status, rows[-1]
+        if code == "sat":
+            lam = point_of_input(hull, np.asarray([x]), "simplex")
+            assert hull.contains_lambda(lam, tol=TOLERANCE).all(), (i, lam)
+            double = copy.deepcopy(model).double()
+            with torch.no_grad():
+                scale = 1 + double(hull.vertices[:1].double()).abs().max().item()
+                margin = spec.margins(double(hull.image(lam, dtype=torch.float64))).min().item()
+            assert margin <= TOLERANCE * scale, (i, margin, scale)
+    decided = [r for r in rows if r[3] in ("sat", "unsat")]
+    holds = sum(r[2] == "holds" for r in decided)
+    print(
+        f"\nMarabou on {len(rows)} simplex-form instances: {len(decided)} decided "
+        f"({holds} unsat/holds, {len(decided) - holds} sat/violated), all agreeing; "
+        f"Marabou {sum(r[5] for r in rows):.2f} s in all (max {max(r[5] for r in rows):.2f} s), "
+        f"verify {sum(r[4] for r in rows):.2f} s (max {max(r[4] for r in rows):.2f} s)"
+    )
+    assert len(decided) >= 20, rows
+    assert holds >= 3 and len(decided) - holds >= 3, rows  # both answers are exercised
+
+
+def _onnxruntime_and_marabou(path, x):
+    import onnxruntime as ort
+    from maraboupy import Marabou
+
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (inp,) = session.get_inputs()
+    want = session.run(None, {inp.name: x})[0]
+    options = Marabou.createOptions(verbosity=0, timeoutInSeconds=10)
+    network = Marabou.read_onnx(str(path))
+    got = network.evaluateWithMarabou([x], filename=os.devnull, options=options)[0]
+    return np.asarray(want).ravel(), np.asarray(got).ravel()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="Marabou 2.0.0 misreads the box input form (the ReLU sorting layer before the "
+    "vertex Gemm): its evaluation of the graph is off by ~0.1 from the first Conv after "
+    "the image on, though every cut up to the image evaluates right; it then answers sat "
+    "with non-counterexamples and unsat on a violated instance (docs/findings.md)",
+)
+def test_marabou_reads_the_box_form(tmp_path):
+    """Marabou's own evaluation of box-form graphs equals onnxruntime's (n = 2, 3, 4)."""
+    for i in (1, 2, 3):
+        model, hull = make_instance(i)
+        info = export_instance(tmp_path / str(i), model, hull, model.spec, input_form="box")
+        u = np.linspace(0.2, 0.7, hull.n, dtype=np.float32)[None]
+        want, got = _onnxruntime_and_marabou(info["onnx"], u)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=NotImplementedError,
+    reason="Marabou 2.0.0's ONNX reader has no Slice, Pad or AveragePool: the study's "
+    "KeypointProxy (channel slices, padded average pooling) cannot be read",
+)
+def test_marabou_reads_the_keypoint_proxy(tmp_path):
+    from kpstudy.models.proxy import build_proxy
+    from kpstudy.pooling import keypoint_pooling
+
+    torch.manual_seed(0)
+    backbone = nn.Sequential(nn.Conv2d(1, 2, 3, padding=1), nn.ReLU(), nn.Conv2d(2, 2, 1))
+    centers = [(1, 2), (4, 3)]
+    pooling = keypoint_pooling(centers, [(1, 1), (0, 1)], (SIDE, SIDE))
+    proxy = build_proxy(backbone, pooling, centers, heatmap_size=(SIDE, SIDE))
+    hull = make_instance(1)[1]
+    info = export_instance(tmp_path, proxy.eval(), hull, proxy.spec, input_form="simplex")
+    want, got = _onnxruntime_and_marabou(info["onnx"], np.full((1, hull.n), 0.25, np.float32))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
