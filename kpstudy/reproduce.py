@@ -362,7 +362,8 @@ def train_models(
     def friendly(file: Path) -> bool:  # the second stage, from weights of the first
         state = torch.load(file, map_location="cpu", weights_only=True)
         init = replace(second, init=state["config"].get("init"))
-        return made_by(file, init) and state.get("init_config") == asdict(first)
+        made = state.get("init_config")
+        return made_by(file, init) and made is not None and config_of({"config": made}) == first
 
     for name, config in configs.items():
         path = paths[name]

@@ -391,7 +391,7 @@ def _initial_weights(backbone: nn.Module, config: TrainConfig, init) -> dict | N
             f"expected {config.init[:12]}…"
         )
     backbone.load_state_dict(state["model"])
-    return state["config"]
+    return asdict(config_of(state))
 
 
 def _diverged(out: Path, saved_epoch: int, epoch: int, step: int, what) -> str:
