@@ -3,7 +3,7 @@
 Ours: :func:`kpstudy.allocation.allocate_tolerances` per image (cached parameterised
 one-hot model, Lagrangian bound tightening, cvxpy + HiGHS at zero gap), and per allocation
 of the same grid batched by :func:`kpstudy.allocation.allocate_many` in ``--workers``
-processes. Baseline: DESIGN.md §4.3's textbook model built per call, ``δv_j = Σ_i z_ji``
+processes. Baseline: docs/design.md §4.3's textbook model built per call, ``δv_j = Σ_i z_ji``
 with binary increments weighted by ``f(i) − f(i−1)``, same solver, gap and feasibility
 tolerances (with HiGHS's default 1e-7 the textbook model returns points that violate
 ``κ|M|δv ≤ ε`` by 4e-7 after rounding). Both must reach the same objective.

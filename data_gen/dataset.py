@@ -12,7 +12,7 @@ the category carries the keypoint names, a skeleton and ``keypoints_3d`` (23×3,
 metres, object frame); each image carries ``K`` (3×3), its ``split``
 (train/val/test), ``scene`` (every drawn scene parameter) and the mask and depth
 file names; each annotation carries ``keypoints`` as ``[u, v, visibility]`` triplets
-in the DESIGN.md pixel convention (pixel centres on integers; visibility 2 = seen,
+in the docs/design.md pixel convention (pixel centres on integers; visibility 2 = seen,
 1 = hidden behind the airplane itself), ``pose`` (``R`` 3×3, ``t`` 3, object → camera)
 and the mask as run-length encoded ``segmentation``.
 

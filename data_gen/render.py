@@ -8,7 +8,7 @@ alpha is the fraction of sunlight its shadow removes, so a patch rendered on a
 catcher carries its own cast shadow.
 
 Cameras are OpenCV pinhole cameras (``x_c = R p + t``, pixel centres on integers,
-DESIGN.md §3); the projection below maps them exactly onto OpenGL's window
+docs/design.md §3); the projection below maps them exactly onto OpenGL's window
 coordinates, so a point projects to the same ``(u, v)`` as :func:`kpstudy.geometry.project`.
 Meshes are trimesh meshes with per-face colours, drawn flat-shaded.
 """

@@ -2,9 +2,9 @@
 
 * **F-alloc** — the optimal integer tolerances ``δv*`` (heatmap pixels) allocated per
   keypoint, mean ± std over images, horizontal (δu) and vertical (δv) panels, one series per
-  tolerance factor α (ε = α·[10°, 10°, 10°, 4, 4, 20 m], DESIGN.md §3, §4.3).
+  tolerance factor α (ε = α·[10°, 10°, 10°, 4, 4, 20 m], docs/design.md §3, §4.3).
 * **F-kps** — for one image, keypoint deviations caused by pose errors drawn uniformly in
-  Ξ = {|δξ| ≤ ε} (the completeness samples of DESIGN.md §4.9) against the allocated box
+  Ξ = {|δξ| ≤ ε} (the completeness samples of docs/design.md §4.9) against the allocated box
   ``[−δu, δu] × [−δv, δv]`` of a few keypoints.
 
 Data and plotting are separate: :func:`allocation_frame` and
@@ -200,7 +200,7 @@ def keypoint_deviation_samples(points_3d, keypoints, K, alpha, n_samples, seed, 
 
     The nominal pose ``(R, t)`` is PnP on the ground-truth keypoints. Pose errors
     ``δξ ~ U(−ε, ε)`` with ``ε = α·[EPS_R, EPS_T]`` are added to the nominal Euler angles
-    (DESIGN.md §3 convention) and translation, the keypoints projected with the perturbed
+    (docs/design.md §3 convention) and translation, the keypoints projected with the perturbed
     pose, and their deviation from the nominal projection returned.
 
     Parameters

@@ -3,7 +3,7 @@
 Images go through preprocessing F0 (:mod:`kpstudy.preprocess`): the whole image is
 resized to the square model input, values stay in [0, 255] (``normalise`` divides by 255
 when a batch enters a network). Keypoints are converted to the heatmap's pixels with the
-resize factors (DESIGN.md §3); the backbones' heatmaps have the input's size.
+resize factors (docs/design.md §3); the backbones' heatmaps have the input's size.
 """
 
 from __future__ import annotations

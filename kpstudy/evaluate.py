@@ -4,7 +4,7 @@ For each held-out image, both target heads (softmax → argmax, softmax → DSNT
 keypoints in heatmap pixels. Reported per head: PCK at 1, 2 and 4 heatmap pixels and the
 mean keypoint error (keypoints inside the image), then the pose from OpenCV's PnP on all
 keypoints mapped back to image pixels, its error against the ground-truth pose per axis
-(DESIGN.md §3), and the fraction of images whose pose error lies inside
+(docs/design.md §3), and the fraction of images whose pose error lies inside
 ``Ξ = {|δξ| ≤ α ε}`` for each α.
 """
 

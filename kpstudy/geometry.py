@@ -1,6 +1,6 @@
 """Camera geometry: pinhole projection, the Euler-angle convention and the pose error.
 
-Conventions (DESIGN.md §3): OpenCV pinhole camera (x right, y down, z forward); a pose
+Conventions (docs/design.md §3): OpenCV pinhole camera (x right, y down, z forward); a pose
 ``(R, t)`` maps object to camera, ``x_c = R p + t``; metres and degrees; pixel
 ``(u, v)`` = (column, row). Euler angles are scipy's extrinsic ``'xyz'``,
 ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, and ``ξ = [roll, pitch, yaw, tx, ty, tz]``.

@@ -1,4 +1,4 @@
-"""Symmetry and unimodality indicators of normalised heatmaps (paper §7.2, DESIGN.md §4.10).
+"""Symmetry and unimodality indicators of normalised heatmaps (paper §7.2, docs/design.md §4.10).
 
 The network returns one unnormalised heatmap per keypoint; a softmax over all ``H × W`` pixels
 turns it into a discrete distribution. Its two marginals are distributions over pixel indices:
@@ -6,7 +6,7 @@ turns it into a discrete distribution. Its two marginals are distributions over 
 * ``u`` (horizontal): the sum over rows, a distribution over the columns ``0 .. W - 1``;
 * ``v`` (vertical): the sum over columns, a distribution over the rows ``0 .. H - 1``.
 
-Pixel centres are on integers, ``(u, v)`` = (column, row), 0-based (DESIGN.md §3). For each
+Pixel centres are on integers, ``(u, v)`` = (column, row), 0-based (docs/design.md §3). For each
 marginal the paper reports four indicators, all in heatmap pixels except the skewness:
 
 * **skewness** ``E[(x - μ)³] / σ³`` (dimensionless) and **mean − median**: both ≈ 0 for a

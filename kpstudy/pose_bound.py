@@ -2,7 +2,7 @@
 
 The paper allocates keypoint tolerances *before* verification and asks the verifier to
 keep each keypoint in its cell; this module asks the verifier *where* each keypoint can
-go and decides the pose error from that (DESIGN.md §4, issues 7 and 27):
+go and decides the pose error from that (docs/design.md §4.11):
 
 1. :func:`kpstudy.verify.reachable_argmax` on the backbone's heatmaps (``stride`` 1: the
    argmax head's own pixels; an odd ``stride`` > 1 pools ``stride × stride`` cells around

@@ -4,7 +4,7 @@ The whole image is resized to the model input (64×64 for the CNN, 256×256 for
 ResNet-18) by pixel-area averaging, a linear map: the resized convex hull of images
 is the convex hull of the resized images. Values stay in [0, 255] until
 :func:`normalise`. A resize by factors ``(sx, sy)`` maps pixel coordinates as
-``u' = (u + 0.5)·sx − 0.5`` (DESIGN.md §3).
+``u' = (u + 0.5)·sx − 0.5`` (docs/design.md §3).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Keypoint networks: backbones that output unnormalised heatmaps, the target heads
 (softmax → DSNT or argmax) and the proxy head that turns the heatmaps into a verifiable
-per-keypoint classification (DESIGN.md §4.5).
+per-keypoint classification (docs/design.md §4.5).
 
 Every backbone has class attributes ``input_size`` (square input side, pixels) and
 ``heatmap_size`` (square heatmap side, pixels) and uses only the operators the verifier

@@ -1,4 +1,4 @@
-"""Target heads: unnormalised heatmaps → keypoints (paper §3.1, DESIGN.md §4.5).
+"""Target heads: unnormalised heatmaps → keypoints (paper §3.1, docs/design.md §4.5).
 
 Both normalise the heatmaps with a spatial softmax (kornia). DSNT takes the softmax's
 mean (kornia's ``spatial_expectation2d``); argmax takes its mode, which is also the mode

@@ -1,7 +1,7 @@
 """The verifier: sound bounds and branch and bound over convex hulls of images.
 
 An instance is a problem (model, input set, output spec) × a bound method × a search
-(DESIGN.md §4.6–4.8): :class:`ConvexHull` (exact), :class:`Parallelotope` (the
+(docs/design.md §4.6–4.8): :class:`ConvexHull` (exact), :class:`Parallelotope` (the
 ModelVerification.jl baseline) or :class:`Box` (ℓ∞); :class:`ArgmaxSpec`;
 :func:`output_bounds` with ``'ibp'``, ``'forward'``, ``'crown'`` or ``'zonotope'`` (the
 default of :func:`verify`: one shared error symbol per unstable ReLU keeps the bounds of a
