@@ -30,7 +30,7 @@ def _ground(renderer, side=400.0):
 
 
 def test_projection_matches_opencv_pixel_convention(renderer):
-    """A pixel is drawn iff its centre (integers, docs/design.md §3) is inside the projected quad."""
+    """A pixel is drawn iff its centre (integers, docs/design.md §3) lies in the projected quad."""
     quad = _colored(trimesh.creation.box((9.0, 5.0, 0.01)), (200, 50, 50))
     quad.apply_translation((1.3, -0.7, 0.0))
     K = intrinsics(96, 64, 40.0)
