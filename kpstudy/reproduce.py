@@ -163,9 +163,9 @@ LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=2.0),
     "cnn_affine": dict(
         pose_bound_method="zonotope",
-        pose_bound_timeout=120.0,
+        pose_bound_timeout=300.0,
         pose_bound_nodes=16,
-        pose_bound_start_depth=4,
+        pose_bound_start_depth=2,
     ),
 }
 #: The same in T-global: the zonotope for both.
