@@ -45,6 +45,7 @@ Verdict, the first rule that applies deciding (``pb_rule``):
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
@@ -327,14 +328,24 @@ def _first_points(hull, sample_seed: int, samples: int = 64) -> list[torch.Tenso
 
 def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
     """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies outside
-    Ξ (half-widths ``eps``), else None."""
+    Ξ (half-widths ``eps``), else None. A point found in the model's dtype counts only if
+    the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
     lam = torch.unique(torch.stack(list(points)), dim=0)
+    outside = _outside_rows(backbone, hull.image(lam), seed, R, t, eps)
+    if outside.size and next(backbone.parameters(), torch.empty(0)).dtype != torch.float64:
+        model64 = copy.deepcopy(backbone).double()
+        lam = lam[outside]
+        outside = _outside_rows(model64, hull.image(lam, dtype=torch.float64), seed, R, t, eps)
+    return lam[outside[0]].tolist() if outside.size else None
+
+
+def _outside_rows(backbone, images, seed, R, t, eps) -> np.ndarray:
+    """Indices of ``images (B, 3, s, s)`` whose argmax → PnP pose lies outside Ξ."""
     factors = scale_factors(seed.image_size, backbone.heatmap_size)
     with torch.no_grad():
-        uv = argmax_keypoints(backbone(hull.image(lam)).float()).double().numpy()
+        uv = argmax_keypoints(backbone(images)).double().numpy()
     errors = _pose_errors(seed, to_image_pixels(uv, factors), R, t)
-    outside = np.flatnonzero(~np.all(errors <= eps, axis=1))
-    return lam[outside[0]].tolist() if outside.size else None
+    return np.flatnonzero(~np.all(errors <= eps, axis=1))
 
 
 _CACHE: dict = {}

@@ -62,7 +62,9 @@ def _fresh_caches(monkeypatch):
 
 def _with_regions(monkeypatch, pixels, witnesses=()):
     """Make the reachability search return ``pixels`` (heatmap ``(u, v)`` per keypoint)."""
-    regions = types.SimpleNamespace(witnesses=list(witnesses), nodes=1, complete=True)
+    regions = types.SimpleNamespace(
+        witnesses=list(witnesses), nodes=1, complete=True, stats={"stopped": None}
+    )
     pixels = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pixels]
     monkeypatch.setattr(pb, "_regions", lambda *args: (regions, pixels, 0.0))
 
@@ -146,7 +148,8 @@ def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch
     _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]), witnesses)
     refuted = _decide(scene, M, eps, backbone=_Peaks(centers, moved))
     assert refuted["pb_status"] == "violated" and refuted["pb_rule"] == "witness"
-    assert refuted["pb_counterexample"] == [1.0] and refuted["pb_exact"] is None
+    # Found among the first images (the hull's vertex or a random image past λ = 0.5).
+    assert refuted["pb_counterexample"][0] > 0.5 and refuted["pb_exact"] is None
 
 
 def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
