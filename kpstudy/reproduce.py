@@ -314,9 +314,8 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
 
 
 def checkpoints(out: Path) -> dict[str, Path]:
-    """Where the train stage writes each backbone's checkpoint (``cnn_affine_base``: the
-    verification-friendly CNN's first stage, only when it is trained here)."""
-    names = ("cnn", "cnn_affine", "resnet18", "cnn_affine_base")
+    """Where the train stage writes each backbone's checkpoint."""
+    names = ("cnn", "cnn_affine", "resnet18")
     return {name: Path(out) / "models" / f"{name}.pt" for name in names}
 
 
@@ -371,7 +370,8 @@ def train_models(
             path.unlink()
         train(out / "data", path, config, device=device, progress=progress)
 
-    path, base = paths["cnn_affine"], paths["cnn_affine_base"]
+    # The first stage is written only when it is trained here (not with the shipped one).
+    path, base = paths["cnn_affine"], Path(out) / "models" / "cnn_affine_base.pt"
     if path.is_file() and (retrain_friendly or not friendly(path)):
         path.unlink()
     if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
