@@ -164,7 +164,7 @@ LOCAL_POSE_BOUND = {
     "cnn_affine": dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=300.0,
-        pose_bound_nodes=16,
+        pose_bound_nodes=6,
         pose_bound_start_depth=2,
     ),
 }
