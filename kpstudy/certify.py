@@ -252,16 +252,8 @@ def certify(
 
     Parameters
     ----------
-    backbone : nn.Module
-        Trained heatmap backbone (eval mode) with ``input_size`` and ``heatmap_size``.
-    vertices : ndarray, (n+1, H, W, 3)
-        The seed image first, then the perturbed images, values in [0, 255], at the
-        render's resolution or already at the model input (they are resized by F0).
-    seed : SeedImage
-        The seed image's ground truth.
-    alpha, kappa, w1, w2 : float
-        Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
-        allocation weights.
+    backbone, vertices, seed, alpha, kappa, w1, w2 :
+        The instance, as :func:`build_instance` takes them.
     method, timeout :
         Passed to :func:`kpstudy.verify.verify` (seconds).
     check_samples : int
