@@ -547,21 +547,29 @@ def _attempt(instance: Instance, settings: Settings) -> dict:
         }
 
 
-def run_instance(instance: Instance, settings: Settings) -> dict:
-    """Certify one instance (in whichever process runs it)."""
-    from data_gen.perturb import hull_vertices, load_perturbations
-    from kpstudy.certify import certify
+def instance_vertices(instance: Instance, data_dir, hull_seed: int = 0):
+    """The hull's vertices ``(n+1, H, W, 3)`` of ``instance`` (the seed image first), as
+    :func:`data_gen.perturb.hull_vertices` draws them from ``data_dir``."""
+    from data_gen.perturb import hull_vertices
 
-    backbone, seed_of = _context(settings.checkpoint, settings.data_dir)
-    vertices = hull_vertices(
-        settings.data_dir,
+    return hull_vertices(
+        data_dir,
         instance.image_id,
         instance.kind,
         instance.m,
         instance.overlapping,
-        settings.hull_seed,
+        hull_seed,
         level=instance.level,
     )
+
+
+def run_instance(instance: Instance, settings: Settings) -> dict:
+    """Certify one instance (in whichever process runs it)."""
+    from data_gen.perturb import load_perturbations
+    from kpstudy.certify import certify
+
+    backbone, seed_of = _context(settings.checkpoint, settings.data_dir)
+    vertices = instance_vertices(instance, settings.data_dir, settings.hull_seed)
     record = certify(
         backbone,
         vertices,

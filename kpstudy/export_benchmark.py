@@ -130,9 +130,8 @@ def export_benchmark(
     """
     from tqdm.auto import tqdm
 
-    from data_gen.perturb import hull_vertices
     from kpstudy import __version__
-    from kpstudy.campaign import Settings, _context, provenance
+    from kpstudy.campaign import Settings, _context, instance_vertices, provenance
     from kpstudy.certify import build_instance
     from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
     from kpstudy.verify.export import INPUT_FORMS, VNNLIB_VERSIONS, export_instance
@@ -183,15 +182,7 @@ def export_benchmark(
             ):
                 onnx_path = staging / "onnx" / f"{name}.onnx"
                 vnnlib_path = staging / "vnnlib" / f"{name}.vnnlib"
-                vertices = hull_vertices(
-                    data_dir,
-                    instance.image_id,
-                    instance.kind,
-                    instance.m,
-                    instance.overlapping,
-                    settings.hull_seed,
-                    level=instance.level,
-                )
+                vertices = instance_vertices(instance, data_dir, settings.hull_seed)
                 try:
                     built = build_instance(
                         backbone,
