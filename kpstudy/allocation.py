@@ -43,7 +43,22 @@ import scipy.sparse as sp
 
 from kpstudy._checks import float_array, positive
 
-__all__ = ["MAX_BOUND", "Allocation", "allocate_many", "allocate_tolerances"]
+__all__ = [
+    "MAX_BOUND",
+    "TOLERANCE_UNITS",
+    "Allocation",
+    "allocate_many",
+    "allocate_tolerances",
+    "allocation_scale",
+]
+
+#: The two readings of the allocated tolerances (docs/design.md §3). ``'heatmap'``: the
+#: sensitivity is taken per heatmap pixel, so ``δv`` is in heatmap pixels, the units of
+#: the cells the verifier proves (sound). ``'paper'``: the sensitivity is taken per image
+#: pixel and the integer ``δv`` is then used as heatmap pixels, each ``1/scale`` image
+#: pixels wide (4.6–6.3× at 64×64 heatmaps of 640×400 renders): the reading that
+#: reproduces the paper's numbers, and looser than its own first-order guarantee.
+TOLERANCE_UNITS = ("heatmap", "paper")
 
 #: Largest per-coordinate bound (heatmap pixels) accepted (the model has 2K·(U+1) binaries).
 MAX_BOUND = 4096
@@ -240,6 +255,17 @@ def allocate_tolerances(
         eps_t=eps[3:].copy(),
         max_dv=ub.astype(np.int64).reshape(K, 2),
     )
+
+
+def allocation_scale(tolerance_units: str, scale):
+    """The resize factors ``(sx, sy)`` (image → heatmap) the sensitivity of the allocation
+    is computed with under ``tolerance_units`` (:data:`TOLERANCE_UNITS`): ``scale`` for
+    ``'heatmap'``, None (image pixels) for ``'paper'``."""
+    if tolerance_units not in TOLERANCE_UNITS:
+        raise ValueError(
+            f"tolerance_units: expected one of {TOLERANCE_UNITS}, got {tolerance_units!r}"
+        )
+    return scale if tolerance_units == "heatmap" else None
 
 
 def allocate_many(problems, *, workers: int = 1, **options) -> list[Allocation]:

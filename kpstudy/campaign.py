@@ -54,6 +54,7 @@ __all__ = [
     "grid",
     "provenance",
     "run_campaign",
+    "run_study",
     "store_path",
 ]
 
@@ -93,8 +94,9 @@ class Settings:
         A kpstudy checkpoint (``python -m kpstudy train``).
     data_dir : str
         The data_gen dataset with its perturbation sets.
-    method, timeout :
-        Bound method and seconds per instance for :func:`kpstudy.verify.verify`.
+    method, timeout, nodes :
+        Bound method, seconds and node budget (``None``: the seconds alone decide) per
+        instance for :func:`kpstudy.verify.verify`.
     check_samples : int
         Hull images through the target model for ``holds`` records.
     hull_seed : int
@@ -105,12 +107,16 @@ class Settings:
     pose_bound_nodes, pose_bound_start_depth :
         Its node budget per hull (``None``: the seconds alone decide; with a budget the
         seconds only cap a slow machine) and the hull's splits before the first bounds.
+    tolerance_units : {'heatmap', 'paper'}
+        How the allocation method reads its tolerances
+        (:data:`kpstudy.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
     """
 
     checkpoint: str
     data_dir: str
     method: str = "auto"
     timeout: float = 60.0
+    nodes: int | None = None
     check_samples: int = 200
     hull_seed: int = 0
     pose_bound_timeout: float | None = None
@@ -118,6 +124,7 @@ class Settings:
     pose_bound_method: str = "forward"
     pose_bound_nodes: int | None = None
     pose_bound_start_depth: int = 0
+    tolerance_units: str = "heatmap"
 
 
 def grid(
@@ -395,7 +402,9 @@ def run_campaign(
         first record.
     settings : Settings
     workers : int
-        Local worker processes (1: this process). Ignored with ``scheduler``. They exit
+        Local worker processes (1: this process), each with ``cpu_count // workers`` torch
+        threads. Ignored with ``scheduler``. A worker (or Dask task) takes one hull's
+        instances at a time, so each hull's region search is made once. Workers exit
         when this process dies; SIGTERM (with no handler of the caller's) stops them and
         exits with status 143.
     scheduler : str, optional
@@ -440,9 +449,13 @@ def run_campaign(
             from distributed import as_completed as dask_completed
 
             with client:
-                futures = {client.submit(_attempt, i, settings, pure=False): i for i in missing}
+                futures = {
+                    client.submit(_attempt_hull, g, settings, pure=False): g
+                    for g in _by_hull(missing)
+                }
                 for future in dask_completed(futures):
-                    finish(futures[future], future.result())
+                    for instance, record in zip(futures[future], future.result()):
+                        finish(instance, record)
         elif workers == 1:
             for instance in missing:
                 finish(instance, _attempt(instance, settings))
@@ -456,9 +469,12 @@ def run_campaign(
                     initargs=(threads, os.getpid()),
                 )
                 try:
-                    futures = {pool.submit(_attempt, i, settings): i for i in missing}
+                    futures = {
+                        pool.submit(_attempt_hull, g, settings): g for g in _by_hull(missing)
+                    }
                     for future in as_completed(futures):
-                        finish(futures[future], future.result())
+                        for instance, record in zip(futures[future], future.result()):
+                            finish(instance, record)
                     pool.shutdown()
                 except BaseException:  # Ctrl-C, SIGTERM, a failed store: no worker outlives it
                     _stop(pool)
@@ -533,6 +549,74 @@ def _stop(pool: ProcessPoolExecutor) -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+def run_study(
+    checkpoints: dict[str, str],
+    data_dir,
+    kinds: Iterable[str],
+    folder,
+    *,
+    grid_options: dict,
+    tolerance_units: Iterable[str] = ("heatmap",),
+    pose_bound: dict[str, dict] | None = None,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: bool = False,
+    **settings,
+) -> pd.DataFrame:
+    """Every campaign of one study table: each model × tolerance reading × kind, one
+    resumable store each (:func:`store_path` under ``folder``).
+
+    Parameters
+    ----------
+    checkpoints : dict
+        ``{model name: checkpoint path}``.
+    data_dir : path
+    kinds : iterable of str
+        Perturbation kinds (:func:`grid`).
+    folder : path
+        Where the stores go.
+    grid_options : dict
+        :func:`grid`'s keywords (``alphas``, ``kappas``, ``seeds``, ``ms``, …).
+    tolerance_units : iterable of str
+        The readings (:data:`kpstudy.allocation.TOLERANCE_UNITS`) the allocation method
+        runs under. The pose-bound method has no tolerances: it runs with the first only.
+    pose_bound : dict, optional
+        ``{model name: Settings fields of the pose-bound method}``; a model left out
+        skips it.
+    workers, scheduler, progress :
+        :func:`run_campaign`'s.
+    **settings :
+        The other :class:`Settings` fields (``timeout``, ``nodes``, …).
+
+    Returns
+    -------
+    DataFrame
+        The records of every campaign with ``model`` and ``tolerance_units`` columns.
+    """
+    readings = list(tolerance_units)
+    if not readings:
+        raise ValueError("tolerance_units: expected one or more readings, got none")
+    frames = []
+    for model, checkpoint in checkpoints.items():
+        for units in readings:
+            extra = (pose_bound or {}).get(model, {}) if units == readings[0] else {}
+            config = Settings(
+                str(checkpoint), str(data_dir), tolerance_units=units, **settings, **extra
+            )
+            for kind in kinds:
+                instances = grid(data_dir, kind, **grid_options)
+                frame = run_campaign(
+                    instances,
+                    store_path(folder, kind, config),
+                    config,
+                    workers=workers,
+                    scheduler=scheduler,
+                    progress=progress,
+                )
+                frames.append(frame.assign(model=model, tolerance_units=units))
+    return pd.concat(frames, ignore_index=True)
+
+
 def _attempt(instance: Instance, settings: Settings) -> dict:
     """:func:`run_instance`, an exception turned into an ``'error'`` record (the
     campaign goes on)."""
@@ -545,6 +629,21 @@ def _attempt(instance: Instance, settings: Settings) -> dict:
             "error": f"{type(exc).__name__}: {exc}",
             "total_time": time.perf_counter() - start,
         }
+
+
+def _attempt_hull(instances: list[Instance], settings: Settings) -> list[dict]:
+    """:func:`_attempt` on the instances of one hull in turn, in one process, so that the
+    pose-bound method's region search (cached per process) is made once per hull."""
+    return [_attempt(instance, settings) for instance in instances]
+
+
+def _by_hull(instances: list[Instance]) -> list[list[Instance]]:
+    """``instances`` grouped by hull (kind, seed image, m, overlap class, level), in the
+    order of each hull's first instance."""
+    groups: dict[tuple, list[Instance]] = {}
+    for i in instances:
+        groups.setdefault((i.kind, i.image_id, i.m, i.overlapping, i.level), []).append(i)
+    return list(groups.values())
 
 
 def instance_vertices(instance: Instance, data_dir, hull_seed: int = 0):
@@ -578,12 +677,14 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
         kappa=instance.kappa,
         method=settings.method,
         timeout=settings.timeout,
+        max_nodes=settings.nodes,
         check_samples=settings.check_samples,
         pose_bound_timeout=settings.pose_bound_timeout,
         pose_bound_stride=settings.pose_bound_stride,
         pose_bound_method=settings.pose_bound_method,
         pose_bound_nodes=settings.pose_bound_nodes,
         pose_bound_start_depth=settings.pose_bound_start_depth,
+        tolerance_units=settings.tolerance_units,
     )
     clipped = 0.0
     if instance.kind in GLOBAL_KINDS:
@@ -662,6 +763,12 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
+    if settings.nodes is not None and (
+        isinstance(settings.nodes, bool)
+        or not isinstance(settings.nodes, int)
+        or settings.nodes < 1
+    ):
+        raise ValueError(f"nodes: expected None or an integer >= 1, got {settings.nodes!r}")
     nodes, depth = settings.pose_bound_nodes, settings.pose_bound_start_depth
     if nodes is not None and (isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1):
         raise ValueError(f"pose_bound_nodes: expected None or an integer >= 1, got {nodes!r}")
@@ -673,6 +780,9 @@ def _check_settings(settings: Settings) -> None:
             f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
         )
 
+    from kpstudy.allocation import allocation_scale
+
+    allocation_scale(settings.tolerance_units, None)  # checks the name
     if settings.pose_bound_method not in REGION_METHODS:
         raise ValueError(
             f"pose_bound_method: expected one of {REGION_METHODS}, "

@@ -32,14 +32,14 @@ import torch
 from torch import nn
 
 from kpstudy import _checks
-from kpstudy.allocation import Allocation, allocate_tolerances
+from kpstudy.allocation import Allocation, allocate_tolerances, allocation_scale
 from kpstudy.evaluate import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import KeypointProxy, build_proxy
 from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
-from kpstudy.pose_bound import pose_bound
+from kpstudy.pose_bound import argmax_outside, pose_bound
 from kpstudy.preprocess import (
     normalise,
     resize_to_input,
@@ -122,7 +122,9 @@ class VerificationInstance:
         The hull's vertices as model inputs (normalised; row 0 the seed image).
     allocation : Allocation
         The tolerances (:func:`kpstudy.allocation.allocate_tolerances`): ``dv`` (K × [δu,
-        δv], heatmap px), ``delta``, ``objective``.
+        δv], the cells' half-widths in heatmap px), ``delta``, ``objective``.
+    tolerance_units : str
+        How the allocation was computed (:data:`kpstudy.allocation.TOLERANCE_UNITS`).
     centers : ndarray of int, (K, 2)
         Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels: the cells' centres.
     R : ndarray, (3, 3)
@@ -139,6 +141,7 @@ class VerificationInstance:
     spec: ArgmaxSpec
     inputs: torch.Tensor
     allocation: Allocation
+    tolerance_units: str
     centers: np.ndarray
     R: np.ndarray
     t: np.ndarray
@@ -155,6 +158,7 @@ def build_instance(
     kappa: float = 1.0,
     w1: float = 1.0,
     w2: float = 5.0,
+    tolerance_units: str = "heatmap",
 ) -> VerificationInstance:
     """The proxy, hull and spec that :func:`certify` verifies (no verification).
 
@@ -170,6 +174,10 @@ def build_instance(
     alpha, kappa, w1, w2 : float
         Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
         allocation weights.
+    tolerance_units : {'heatmap', 'paper'}
+        How the allocation is read (:data:`kpstudy.allocation.TOLERANCE_UNITS`): its
+        integers are the cells' half-widths in heatmap pixels either way; under
+        ``'paper'`` they were allocated per image pixel.
 
     Returns
     -------
@@ -178,11 +186,12 @@ def build_instance(
     Raises
     ------
     ValueError
-        Naming ``alpha``, ``kappa``, ``backbone``, ``vertices`` or ``seed`` (no valid
-        nominal pose, or a keypoint outside the heatmap).
+        Naming ``alpha``, ``kappa``, ``tolerance_units``, ``backbone``, ``vertices`` or
+        ``seed`` (no valid nominal pose, or a keypoint outside the heatmap).
     """
     alpha = float(_checks.positive(alpha, "alpha"))
     kappa = float(_checks.positive(kappa, "kappa"))
+    allocation_scale(tolerance_units, None)  # checks the name
     for name in ("input_size", "heatmap_size"):
         if not hasattr(backbone, name):
             raise ValueError(f"backbone: expected a kpstudy backbone with .{name}")
@@ -204,7 +213,12 @@ def build_instance(
     R, t = nominal
     factors = scale_factors(seed.image_size, hm)
     M = pose_sensitivity(P, V, K, R, t, scale=factors)
-    allocation = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
+    M_allocated = M
+    if tolerance_units != "heatmap":
+        M_allocated = pose_sensitivity(
+            P, V, K, R, t, scale=allocation_scale(tolerance_units, factors)
+        )
+    allocation = allocate_tolerances(M_allocated, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
     centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
     if np.any((centers < 0) | (centers >= hm)):
         k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
@@ -221,6 +235,7 @@ def build_instance(
         spec=proxy.spec,
         inputs=x,
         allocation=allocation,
+        tolerance_units=tolerance_units,
         centers=centers,
         R=R,
         t=t,
@@ -240,6 +255,7 @@ def certify(
     w2: float = 5.0,
     method: str = "auto",
     timeout: float = 60.0,
+    max_nodes: int | None = None,
     check_samples: int = 200,
     sample_seed: int = 0,
     pose_bound_timeout: float | None = None,
@@ -247,15 +263,17 @@ def certify(
     pose_bound_method: str = "forward",
     pose_bound_nodes: int | None = None,
     pose_bound_start_depth: int = 0,
+    tolerance_units: str = "heatmap",
 ) -> dict:
     """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
 
     Parameters
     ----------
-    backbone, vertices, seed, alpha, kappa, w1, w2 :
+    backbone, vertices, seed, alpha, kappa, w1, w2, tolerance_units :
         The instance, as :func:`build_instance` takes them.
-    method, timeout :
-        Passed to :func:`kpstudy.verify.verify` (seconds).
+    method, timeout, max_nodes :
+        Passed to :func:`kpstudy.verify.verify` (seconds; a node budget, ``None``: the
+        seconds alone).
     check_samples : int
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
@@ -282,21 +300,34 @@ def certify(
         on the seed, degrees and metres), ``seed_inside`` (that error lies in Ξ),
         ``counterexample`` (λ or None), ``empirical_inside`` (fraction of sampled hull
         images whose target pose error lies in Ξ; None unless ``holds``),
-        ``empirical_samples``; with ``pose_bound_timeout``, the ``pb_*`` entries of
-        :func:`kpstudy.pose_bound.pose_bound`.
+        ``argmax_outside`` (fraction of the same images whose argmax → PnP pose leaves
+        Ξ: what a ``holds`` under the ``'paper'`` reading lets through; None unless
+        ``holds``), ``empirical_samples``, ``tolerance_units``; with
+        ``pose_bound_timeout``, the ``pb_*`` entries of :func:`kpstudy.pose_bound.pose_bound`.
     """
     start = time.perf_counter()
     alpha = float(_checks.positive(alpha, "alpha"))
     kappa = float(_checks.positive(kappa, "kappa"))
     if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
         raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
-    instance = build_instance(backbone, vertices, seed, alpha=alpha, kappa=kappa, w1=w1, w2=w2)
+    instance = build_instance(
+        backbone,
+        vertices,
+        seed,
+        alpha=alpha,
+        kappa=kappa,
+        w1=w1,
+        w2=w2,
+        tolerance_units=tolerance_units,
+    )
     hull, allocation, xi = instance.hull, instance.allocation, instance.xi
     R, t = instance.R, instance.t
     P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
     x = instance.inputs
 
-    result = verify(instance.proxy, hull, instance.spec, method=method, timeout=timeout)
+    result = verify(
+        instance.proxy, hull, instance.spec, method=method, timeout=timeout, max_nodes=max_nodes
+    )
     seed_error = target_pose_errors(backbone, x[:1], seed, R, t)[0]
     record = {
         "image_id": seed.image_id,
@@ -315,12 +346,16 @@ def certify(
             None if result.counterexample is None else result.counterexample.point.tolist()
         ),
         "empirical_inside": None,
+        "argmax_outside": None,
         "empirical_samples": 0,
+        "tolerance_units": tolerance_units,
     }
     if result.status == "holds" and check_samples:
-        lam = hull.sample(int(check_samples), sample_seed)
-        errors = target_pose_errors(backbone, hull.image(lam), seed, R, t)
+        images = hull.image(hull.sample(int(check_samples), sample_seed))
+        errors = target_pose_errors(backbone, images, seed, R, t)
         record["empirical_inside"] = float(np.mean(np.all(errors <= xi, axis=1)))
+        outside = argmax_outside(backbone, images, seed, R, t, xi)
+        record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)
     if pose_bound_timeout is not None:
         M_image = pose_sensitivity(P, V, K, R, t)

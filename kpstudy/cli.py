@@ -141,6 +141,12 @@ def main(argv=None) -> int:
     ca.add_argument("--seeds", type=int, help="first N seed images (default all)")
     ca.add_argument("--timeout", type=float, default=60.0, help="seconds per instance")
     ca.add_argument(
+        "--nodes",
+        type=int,
+        help="node budget per instance of the allocation method (the same verdicts on any "
+        "machine; the seconds then only cap a slow one)",
+    )
+    ca.add_argument(
         "--pose-bound-timeout",
         type=float,
         help="also run the pose-bound method, this many seconds per hull",
@@ -163,6 +169,12 @@ def main(argv=None) -> int:
         type=int,
         default=0,
         help="splits of each hull before the pose-bound method's first bounds (default 0)",
+    )
+    ca.add_argument(
+        "--tolerance-units",
+        default="heatmap",
+        help="the allocation's reading: heatmap pixels (sound, default) or the paper's "
+        "(allocated per image pixel, used as heatmap pixels)",
     )
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
@@ -290,6 +302,7 @@ def _campaign(args) -> None:
     and the rest go on. A store made by another checkpoint, data, settings or code, an
     unusable ``--store`` / ``--out`` or an unreachable ``--scheduler`` is refused before
     any work, with nothing written."""
+    import pandas as pd
     from tqdm.auto import tqdm
 
     from kpstudy.campaign import Settings, grid, run_campaign
@@ -302,10 +315,12 @@ def _campaign(args) -> None:
         args.data,
         args.method,
         args.timeout,
+        nodes=args.nodes,
         pose_bound_timeout=args.pose_bound_timeout,
         pose_bound_method=args.pose_bound_method,
         pose_bound_nodes=args.pose_bound_nodes,
         pose_bound_start_depth=args.pose_bound_start_depth,
+        tolerance_units=args.tolerance_units,
     )
     instances = grid(
         args.data,
@@ -332,7 +347,13 @@ def _campaign(args) -> None:
     )
     if args.out:
         write_table(frame, args.out)
-    print(frame["status"].value_counts().to_string() if len(frame) else "no instances")
+    if not len(frame):
+        print("no instances")
+        return
+    counts = {"allocation method": frame["status"]}
+    if "pb_status" in frame and frame["pb_status"].notna().any():
+        counts["pose-bound method"] = frame["pb_status"]
+    print(pd.DataFrame({k: v.value_counts() for k, v in counts.items()}).fillna(0).astype(int))
 
 
 def _export_benchmark(args, argv) -> None:

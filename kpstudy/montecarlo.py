@@ -20,7 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from kpstudy import _checks
-from kpstudy.allocation import allocate_many
+from kpstudy.allocation import allocate_many, allocation_scale
 from kpstudy.geometry import (
     euler_from_matrix_torch,
     matrix_from_euler_torch,
@@ -157,6 +157,7 @@ def soundness_completeness_table(
     compile: bool = False,
     progress: bool = False,
     workers: int = 1,
+    tolerance_units: str = "heatmap",
 ) -> pd.DataFrame:
     """The paper's T-prob grid: allocate per image, then both Monte Carlo fractions.
 
@@ -174,12 +175,18 @@ def soundness_completeness_table(
         Fuse the batched PnP (:func:`kpstudy.pnp.solve_pnp_batch`); show a progress bar.
     workers : int
         Processes for the allocations of the whole grid (:func:`kpstudy.allocation.allocate_many`).
+    tolerance_units : {'heatmap', 'paper'}
+        The reading of the tolerances (:data:`kpstudy.allocation.TOLERANCE_UNITS`). Under
+        ``'paper'`` the allocation and both fractions are in image pixels (the paper's
+        computation) and ``soundness_true_units`` is the soundness of the same integer
+        boxes read as heatmap pixels (divided by ``scale``), the boxes the verifier proves.
 
     Returns
     -------
     DataFrame
-        One row per (κ, α): ``soundness``, ``completeness`` (pooled over images),
-        ``soundness_min_image``, ``mean_dv``, ``images``, ``samples``.
+        One row per (κ, α): ``tolerance_units``, ``soundness``, ``completeness`` (pooled
+        over images), ``soundness_true_units``, ``soundness_min_image``, ``mean_dv``,
+        ``images``, ``samples``.
     """
     V = _checks.float_array(V, "V", (None, None, 2))
     I = V.shape[0]
@@ -194,7 +201,8 @@ def soundness_completeness_table(
         )
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
-    M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=scale) for i in range(I)]
+    reading = allocation_scale(tolerance_units, scale)
+    M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=reading) for i in range(I)]
     rows = []
     grid = [(kappa, alpha) for kappa in kappas for alpha in alphas]
     problems = [(m, a * EPS_R, a * EPS_T, k) for k, a in grid for m in M]
@@ -206,15 +214,22 @@ def soundness_completeness_table(
         dv = np.stack([a.dv for a in allocations[c * I : (c + 1) * I]])
         args = (P, V, K, R, t, dv, eps_r, eps_t)
         s = probabilistic_soundness(
-            *args, n_samples=n_samples, seed=seed, scale=scale, compile=compile
+            *args, n_samples=n_samples, seed=seed, scale=reading, compile=compile
         )
-        c = probabilistic_completeness(*args, n_samples=n_samples, seed=seed, scale=scale)
+        c = probabilistic_completeness(*args, n_samples=n_samples, seed=seed, scale=reading)
+        true = s
+        if reading is None and scale is not None:  # the same boxes in heatmap pixels
+            true = probabilistic_soundness(
+                *args, n_samples=n_samples, seed=seed, scale=scale, compile=compile
+            )
         rows.append(
             dict(
+                tolerance_units=tolerance_units,
                 kappa=kappa,
                 alpha=alpha,
                 soundness=s.mean(),
                 completeness=c.mean(),
+                soundness_true_units=true.mean(),
                 soundness_min_image=s.min(),
                 mean_dv=dv.mean(),
                 images=I,

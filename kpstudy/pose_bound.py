@@ -64,6 +64,7 @@ from kpstudy.verify import reachable_argmax
 __all__ = [
     "ENUMERATION_CHUNK",
     "MAX_COMBINATIONS",
+    "argmax_outside",
     "enumerated_pose_error",
     "linearised_bound",
     "pose_bound",
@@ -331,16 +332,17 @@ def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
     Ξ (half-widths ``eps``), else None. A point found in the model's dtype counts only if
     the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
     lam = torch.unique(torch.stack(list(points)), dim=0)
-    outside = _outside_rows(backbone, hull.image(lam), seed, R, t, eps)
+    outside = argmax_outside(backbone, hull.image(lam), seed, R, t, eps)
     if outside.size and next(backbone.parameters(), torch.empty(0)).dtype != torch.float64:
         model64 = copy.deepcopy(backbone).double()
         lam = lam[outside]
-        outside = _outside_rows(model64, hull.image(lam, dtype=torch.float64), seed, R, t, eps)
+        outside = argmax_outside(model64, hull.image(lam, dtype=torch.float64), seed, R, t, eps)
     return lam[outside[0]].tolist() if outside.size else None
 
 
-def _outside_rows(backbone, images, seed, R, t, eps) -> np.ndarray:
-    """Indices of ``images (B, 3, s, s)`` whose argmax → PnP pose lies outside Ξ."""
+def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
+    """Indices of ``images (B, 3, s, s)`` (normalised model inputs) whose argmax → PnP
+    pose lies outside Ξ (half-widths ``eps``, 6: degrees, metres) around ``(R, t)``."""
     factors = scale_factors(seed.image_size, backbone.heatmap_size)
     with torch.no_grad():
         uv = argmax_keypoints(backbone(images)).double().numpy()

@@ -7,12 +7,14 @@ a missing table or figure is listed as missing rather than skipped silently.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from kpstudy.io import write_text_atomic
+from kpstudy.tables import reading_comparison
 
 __all__ = ["SECTIONS", "campaign_readings", "t_prob_readings", "write_report"]
 
@@ -108,8 +110,38 @@ def write_report(out, profile: dict | None = None) -> Path:
     return write_text_atomic(out / "REPORT.md", "\n".join(lines))
 
 
+def _per_group(read, compare: tuple[str, str, str] | None = None):
+    """``read(table)``, once per ``model`` and tolerance reading (its lines prefixed by
+    them) when the table has them; with ``compare`` (ours, paper, name), first each
+    model's sentence of :func:`kpstudy.tables.reading_comparison`."""
+
+    def readings(table):
+        keys = [c for c in ("model", "tolerance_units") if c in table]
+        lines = []
+        if compare is not None:
+            models = table.groupby("model", sort=True) if "model" in table else [("", table)]
+            for model, part in models:
+                sentence = reading_comparison(part, *compare)
+                if sentence:
+                    lines.append((f"`{model}`: " if model else "") + sentence)
+        for key, part in table.groupby(keys, sort=True) if keys else [((), table)]:
+            key = key if isinstance(key, tuple) else (key,)
+            prefix = "".join(
+                f"`{v}`: " if k == "model" else f"'{v}' reading: " for k, v in zip(keys, key)
+            )
+            lines += [prefix + line for line in read(part)]
+        return lines
+
+    return readings
+
+
 def t_prob_readings(table: pd.DataFrame) -> list[str]:
-    """Does soundness rise with κ and fall with α; does completeness do the opposite?"""
+    """Does soundness rise with κ and fall with α; does completeness do the opposite?
+    Per tolerance reading, after the sentence comparing the readings with the paper."""
+    return _per_group(_t_prob, ("soundness", "paper_soundness", "Soundness"))(table)
+
+
+def _t_prob(table: pd.DataFrame) -> list[str]:
     s = table.pivot(index="kappa", columns="alpha", values="soundness")
     c = table.pivot(index="kappa", columns="alpha", values="completeness")
     paper = table.pivot(index="kappa", columns="alpha", values="paper_soundness")
@@ -125,7 +157,15 @@ def t_prob_readings(table: pd.DataFrame) -> list[str]:
         f"At κ = {s.index[0]:g}, soundness from α = {s.columns[0]:g} to {s.columns[-1]:g}: "
         f"{s.iloc[0, 0]:.4g} → {s.iloc[0, -1]:.4g} (paper {paper.iloc[0, 0]:.4g} → "
         f"{paper.iloc[0, -1]:.4g}).",
-    ]
+    ] + (
+        [
+            f"The same integer boxes read as heatmap pixels (the cells the verifier proves) "
+            f"keep {table.soundness_true_units.min():.4g}–{table.soundness_true_units.max():.4g} "
+            "of their vertices' poses in Ξ."
+        ]
+        if "soundness_true_units" in table and (table.get("tolerance_units") == "paper").all()
+        else []
+    )
 
 
 def campaign_readings(table: pd.DataFrame, axes: dict[str, str], summary: bool = True) -> list[str]:
@@ -164,6 +204,11 @@ def _summary(table: pd.DataFrame) -> list[str]:
         )
         + f"; {inside} had the seed's target-model pose inside Ξ."
     )
+    if "argmax_outside" in table and table.argmax_outside.notna().any():
+        lines.append(
+            f"Of the sampled hull images of its holds, {table.argmax_outside.mean():.1%} (mean "
+            "over cells) have an argmax → PnP pose outside Ξ: what this reading lets through."
+        )
     if "dv_zero" in table:
         lines.append(
             f"The allocation gave {table.dv_zero.mean():.0%} of the keypoint coordinates "
@@ -172,7 +217,7 @@ def _summary(table: pd.DataFrame) -> list[str]:
             "ground-truth pixel, so violations at the seed image itself measure how often "
             "the allocation is tighter than the network's own accuracy."
         )
-    if "pb_holds" in table:
+    if "pb_holds" in table and table.pb_holds.notna().any():
         inside = table.seeds_inside.sum()
         rate = lambda column: "n/a" if not inside else f"{column.sum() / inside:.1%}"  # noqa: E731
         lines.append(
@@ -187,7 +232,7 @@ def _summary(table: pd.DataFrame) -> list[str]:
             f"{table.pb_time_mean.mean():.3g} s per instance (one region search per hull, "
             "counted in full for each of its α, κ cells)."
         )
-    if "pb_by_enumeration" in table:
+    if "pb_by_enumeration" in table and table.pb_by_enumeration.notna().any():
         lines.append(
             f"Decided by a witness image outside Ξ: {int(table.pb_by_witness.sum())}; by PnP on "
             f"every combination of region pixels (exact for argmax → PnP): "
@@ -197,30 +242,17 @@ def _summary(table: pd.DataFrame) -> list[str]:
     return lines
 
 
-def _per_model(read):
-    """``read(table)``, once per ``model`` (its lines prefixed by the model's name) when the
-    table has one."""
-
-    def readings(table):
-        if "model" not in table:
-            return read(table)
-        return [
-            f"`{model}`: {line}"
-            for model in sorted(table.model.unique())
-            for line in read(table[table.model == model])
-        ]
-
-    return readings
+_RATE = ("verified_rate", "paper_rate", "Verified rate (allocation method)")
 
 
-@_per_model
+@functools.partial(_per_group, compare=_RATE)
 def _local(table):
     return campaign_readings(
         table, {"alpha": "α", "kappa": "κ", "m": "m", "overlapping": "overlapping"}
     )
 
 
-@_per_model
+@functools.partial(_per_group, compare=_RATE)
 def _global(table):
     lines = campaign_readings(table, {"alpha": "α", "kappa": "κ"})
     for kind in sorted(table.kind.unique()):
@@ -229,6 +261,7 @@ def _global(table):
     return lines
 
 
+@functools.partial(_per_group, compare=_RATE)
 def _resnet(table):
     return campaign_readings(table, {"overlapping": "overlapping"})
 

@@ -83,7 +83,12 @@ class Profile:
         training images used (``None``: all).
     images, samples : T-prob's overhead views and Monte Carlo samples per view.
     seeds : seed images per campaign (≤ ``perturbed_seeds``); ``resnet_seeds`` for T-resnet.
-    timeout, resnet_timeout : verification seconds per instance.
+    timeout, resnet_timeout : verification seconds per instance (with ``nodes``, a cap).
+    nodes : the allocation method's node budget per instance (``None``: the seconds
+        decide): the same verdicts on any machine.
+    tolerance_units : the readings of the allocated tolerances every campaign and T-prob
+        run under (:data:`kpstudy.allocation.TOLERANCE_UNITS`), the first also with the
+        pose-bound method.
     local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
         pose-bound method's :class:`kpstudy.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
@@ -110,6 +115,8 @@ class Profile:
     resnet_timeout: float
     cnn_images: int | None = None
     resnet_images: int | None = None
+    nodes: int | None = None
+    tolerance_units: tuple = ("heatmap", "paper")
     local_pose_bound: dict = field(default_factory=lambda: dict(LOCAL_POSE_BOUND))
     global_pose_bound: dict = field(default_factory=lambda: dict(GLOBAL_POSE_BOUND))
     symmetry_backbone: str = "cnn"
@@ -120,7 +127,7 @@ class Profile:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.type in ("str", "dict") or f.name == "seed" or value is None:
+            if f.type in ("str", "dict", "tuple") or f.name == "seed" or value is None:
                 continue
             if isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
@@ -129,7 +136,24 @@ class Profile:
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
+        from kpstudy.allocation import TOLERANCE_UNITS
         from kpstudy.campaign import Settings
+
+        readings = self.tolerance_units
+        if (
+            not isinstance(readings, tuple)
+            or not readings
+            or len(set(readings)) != len(readings)
+            or not set(readings) <= set(TOLERANCE_UNITS)
+        ):
+            raise ValueError(
+                f"tolerance_units: expected a tuple of distinct readings from "
+                f"{TOLERANCE_UNITS}, got {readings!r}"
+            )
+        if self.nodes is not None and (
+            isinstance(self.nodes, bool) or int(self.nodes) != self.nodes
+        ):
+            raise ValueError(f"nodes: expected None or a positive integer, got {self.nodes!r}")
 
         settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
         for name in ("local_pose_bound", "global_pose_bound"):
@@ -191,6 +215,7 @@ PROFILES = {
         resnet_seeds=2,
         timeout=10.0,
         resnet_timeout=20.0,
+        nodes=4,
     ),
     "paper": Profile(
         "paper",
@@ -442,13 +467,15 @@ def run_notebooks(
     out = Path(out).resolve()
     models = {k: str(p.resolve()) for k, p in checkpoints(out).items()}
     data_dir = str(out / "data")
-    campaign = dict(workers=prof.workers, scheduler=scheduler)
+    readings = list(prof.tolerance_units)
+    campaign = dict(workers=prof.workers, scheduler=scheduler, nodes=prof.nodes)
     cnn_campaign = dict(
         data_dir=data_dir,
         checkpoints={name: models[name] for name in ("cnn", "cnn_affine")},
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound=prof.local_pose_bound,
+        tolerance_units=readings,
         **campaign,
     )
     parameters = {
@@ -459,7 +486,11 @@ def run_notebooks(
         ),
         "04_allocation": dict(data_dir=data_dir, images=prof.figure_images, seed=prof.seed),
         "05_probabilistic": dict(
-            images=prof.images, samples=prof.samples, seed=prof.seed, workers=os.cpu_count() or 1
+            images=prof.images,
+            samples=prof.samples,
+            seed=prof.seed,
+            tolerance_units=readings,
+            workers=os.cpu_count() or 1,
         ),
         "06_local": cnn_campaign,
         "07_global": dict(cnn_campaign, pose_bound=prof.global_pose_bound),
@@ -468,6 +499,7 @@ def run_notebooks(
             checkpoint=models["resnet18"],
             seeds=prof.resnet_seeds,
             timeout=prof.resnet_timeout,
+            tolerance_units=readings,
             **campaign,
         ),
     }

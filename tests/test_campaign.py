@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
+from kpstudy.allocation import allocate_tolerances
 from kpstudy.campaign import (
     Instance,
     ResultStore,
@@ -14,10 +15,15 @@ from kpstudy.campaign import (
     grid,
     run_campaign,
     run_instance,
+    run_study,
     store_path,
 )
-from kpstudy.certify import SeedImage, certify
+from kpstudy.certify import SeedImage, build_instance, certify
 from kpstudy.data import load_keypoint_set
+from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.pose_bound import argmax_outside
+from kpstudy.preprocess import scale_factors
+from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.train import TrainConfig, load_checkpoint, train
 
 
@@ -71,6 +77,70 @@ def test_a_violated_instance_carries_a_point_of_the_hull(study):
     )
 
 
+def test_the_paper_reading_allocates_per_image_pixel_and_measures_its_price(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    heatmap = build_instance(backbone, vertices, seed, alpha=1.5)
+    paper = build_instance(backbone, vertices, seed, alpha=1.5, tolerance_units="paper")
+    P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), seed.K
+    R, t = heatmap.R, heatmap.t
+    for instance, scale in ((heatmap, scale_factors(seed.image_size, 64)), (paper, None)):
+        M = pose_sensitivity(P, V, K, R, t, scale=scale)
+        expected = allocate_tolerances(M, 1.5 * EPS_R, 1.5 * EPS_T, max_dv=64).dv
+        assert np.array_equal(instance.allocation.dv, expected)
+    assert paper.tolerance_units == "paper" and heatmap.tolerance_units == "heatmap"
+    # Per image pixel the sensitivity is smaller (a 640×400 render on a 64×64 heatmap):
+    # the paper's reading allocates wider cells; the pose-bound's M stays per heatmap pixel.
+    assert paper.allocation.dv.sum() > heatmap.allocation.dv.sum()
+    assert np.array_equal(paper.M, heatmap.M)
+
+    record = certify(
+        backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=8, tolerance_units="paper"
+    )
+    assert record["status"] == "holds" and record["tolerance_units"] == "paper"
+    hull = paper.hull
+    images = hull.image(hull.sample(8, 0))
+    xi = 1e4 * np.r_[EPS_R, EPS_T]
+    outside = argmax_outside(backbone, images, seed, R, t, xi)
+    assert record["argmax_outside"] == len(outside) / 8
+    with pytest.raises(ValueError, match="^tolerance_units: expected one of"):
+        build_instance(backbone, vertices, seed, tolerance_units="pixels")
+
+
+def test_a_study_runs_every_reading_and_the_pose_bound_once(study, tmp_path):
+    data, checkpoint = study
+    records = run_study(
+        {"tiny": str(checkpoint)},
+        data,
+        ["blocks"],
+        tmp_path,
+        grid_options=dict(alphas=[0.5], kappas=[1.0], ms=[2], overlapping=[True]),
+        tolerance_units=("heatmap", "paper"),
+        pose_bound={"tiny": dict(pose_bound_timeout=60.0, pose_bound_nodes=1)},
+        timeout=30,
+        nodes=2,
+        check_samples=0,
+    )
+    assert len(records) == 2 * 2  # two seed images, two readings
+    assert sorted(records.tolerance_units) == ["heatmap", "heatmap", "paper", "paper"]
+    assert set(records.model) == {"tiny"} and (records.nodes <= 2).all()
+    by = records.set_index("tolerance_units")
+    assert by.loc["heatmap", "pb_status"].notna().all()
+    assert by.loc["paper", "pb_status"].isna().all()
+    assert len(list(tmp_path.glob("blocks-*.sqlite"))) == 2
+    with pytest.raises(ValueError, match="^tolerance_units"):
+        run_study(
+            {"tiny": str(checkpoint)},
+            data,
+            ["blocks"],
+            tmp_path,
+            grid_options={},
+            tolerance_units=[],
+        )
+
+
 def test_certify_bad_input_is_named(study):
     data, checkpoint = study
     backbone, _ = load_checkpoint(checkpoint)
@@ -117,6 +187,8 @@ def test_bad_settings_fail_before_any_work(study, tmp_path):
         (Settings(str(checkpoint), str(tmp_path)), "data_dir"),
         (Settings(str(checkpoint), str(data), method="exact"), "method"),
         (Settings(str(checkpoint), str(data), timeout=0), "timeout"),
+        (Settings(str(checkpoint), str(data), nodes=0), "^nodes"),
+        (Settings(str(checkpoint), str(data), tolerance_units="px"), "^tolerance_units"),
         (Settings(str(checkpoint), str(data), pose_bound_nodes=0), "^pose_bound_nodes"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=-1), "^pose_bound_start"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=99), "^pose_bound_start"),

@@ -276,12 +276,24 @@ NOTES = "these are my notes, not a database\n" * 10
         (("--store", "{tmp}/a_file/sub/s.sqlite"), ("store:", "not a directory")),
         (("--store", "{tmp}/notes.sqlite"), ("store:", "SQLite")),
         (("--timeout", 0, "--store", "{tmp}/fresh/s.sqlite"), ("timeout:",)),
+        (("--nodes", 0, "--store", "{tmp}/fresh/s.sqlite"), ("nodes:",)),
+        (
+            ("--tolerance-units", "pixels", "--store", "{tmp}/fresh/s.sqlite"),
+            ("tolerance_units:", "pixels"),
+        ),
         (
             ("--scheduler", "tcp://127.0.0.1:1", "--store", "{tmp}/fresh/s.sqlite"),
             ("scheduler:", "tcp://127.0.0.1:1"),
         ),
     ],
-    ids=["store_uncreatable", "store_not_sqlite", "timeout_0", "scheduler_unreachable"],
+    ids=[
+        "store_uncreatable",
+        "store_not_sqlite",
+        "timeout_0",
+        "nodes_0",
+        "tolerance_units_unknown",
+        "scheduler_unreachable",
+    ],
 )
 def test_campaign_argument_errors_are_one_line_and_write_nothing(
     study, tmp_path, capsys, argv, words

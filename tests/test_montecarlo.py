@@ -197,11 +197,44 @@ def test_table_has_the_grid_and_trends(P, K):
         scale=HEATMAP_SCALE,
         max_dv=64,
     )
-    assert list(df.columns[:4]) == ["kappa", "alpha", "soundness", "completeness"]
+    assert list(df.columns[:5]) == [
+        "tolerance_units",
+        "kappa",
+        "alpha",
+        "soundness",
+        "completeness",
+    ]
     assert len(df) == 4 and df.samples.iloc[0] == 300
     by = df.set_index(["kappa", "alpha"])
     assert by.loc[(2.0, 1.0), "mean_dv"] <= by.loc[(1.0, 1.0), "mean_dv"]
     assert by.loc[(1.0, 1.0), "mean_dv"] >= by.loc[(1.0, 0.5), "mean_dv"]
+
+
+def test_both_readings_give_their_documented_allocations(P, K):
+    _, _, V = views(2, 42, K, P)
+    grid = dict(kappas=(1.0,), alphas=(1.0,), n_samples=50, seed=0, max_dv=64)
+    heatmap = soundness_completeness_table(P, V, K, scale=HEATMAP_SCALE, **grid)
+    paper = soundness_completeness_table(
+        P, V, K, scale=HEATMAP_SCALE, tolerance_units="paper", **grid
+    )
+    poses = [solve_pnp(P, v, K) for v in V]
+    R, t = np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])
+    dv = {}
+    for units, scale in (("heatmap", HEATMAP_SCALE), ("paper", None)):
+        M = [pose_sensitivity(P, v, K, r, t_, scale=scale) for v, r, t_ in zip(V, R, t)]
+        dv[units] = allocate(M, 1.0)
+    assert heatmap.mean_dv[0] == dv["heatmap"].mean()
+    assert paper.mean_dv[0] == dv["paper"].mean() > dv["heatmap"].mean()
+    study = (P, V, K, R, t)
+    common = dict(eps_r=EPS_R, eps_t=EPS_T, n_samples=50, seed=0)
+    # The paper's reading: its own soundness in image pixels, and the same integer boxes
+    # read as heatmap pixels (what the verifier proves).
+    own = probabilistic_soundness(*study, dv["paper"], **common).mean()
+    true = probabilistic_soundness(*study, dv["paper"], scale=HEATMAP_SCALE, **common).mean()
+    assert paper.soundness[0] == own and paper.soundness_true_units[0] == true
+    assert heatmap.soundness_true_units[0] == heatmap.soundness[0]
+    with pytest.raises(ValueError, match="^tolerance_units:"):
+        soundness_completeness_table(P, V, K, tolerance_units="pixels", **grid)
 
 
 @pytest.mark.parametrize(

@@ -68,6 +68,7 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     prob = pd.read_csv(run / "tables" / "t_prob.csv")
     assert set(zip(prob.kappa, prob.alpha)) == set(PAPER_T_PROB)
     assert prob.soundness.between(0, 1).all() and (prob.samples == 40).all()
+    assert sorted(set(prob.tolerance_units)) == ["heatmap", "paper"] and len(prob) == 24
     local = pd.read_csv(run / "tables" / "t_local.csv")
     assert set(local.kappa) == {1.0, 1.5} and set(local.alpha) == {1.0, 1.5}
     assert local.paper_rate.notna().all()
@@ -77,13 +78,19 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     # The pose-bound method on the same instances, and what each method alone verifies.
     assert (local.pb_holds <= local.instances).all() and local.pb_time_mean.gt(0).all()
     assert {"pb_only", "allocation_only", "pb_verified_rate"} <= set(local.columns)
-    assert records.pb_status.isin(["holds", "violated", "unknown"]).all()
+    # Both readings of the tolerances; the pose-bound method (no tolerances) runs once.
+    assert set(local.tolerance_units) == {"heatmap", "paper"}
+    heatmap = records[records.tolerance_units == "heatmap"]
+    assert heatmap.pb_status.isin(["holds", "violated", "unknown"]).all()
+    assert records[records.tolerance_units == "paper"].pb_status.isna().all()
+    assert (records.nodes <= TINY.nodes).all()
+    assert "reading" in (run / "REPORT.md").read_text()
     assert "Pose-bound method" in (run / "REPORT.md").read_text()
     glob = pd.read_csv(run / "tables" / "t_global.csv")
     # Both CNNs, row by row: the paper's and the verification-friendly one.
     assert set(local.model) == set(glob.model) == {"cnn", "cnn_affine"}
     assert set(records.model) == {"cnn", "cnn_affine"}
-    assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 2 * 5 * 4
+    assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 2 * 2 * 5 * 4
     assert "`cnn_affine`: " in (run / "REPORT.md").read_text()
     assert glob.paper_time_mean.notna().all() and (glob.clipped_fraction >= 0).all()
     resnet = pd.read_csv(run / "tables" / "t_resnet.csv")
@@ -118,6 +125,9 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         (dict(seeds=9), "seeds: expected at most perturbed_seeds=8"),
         (dict(timeout=0), "timeout: expected a positive number"),
         (dict(speed=2), "overrides: unknown profile fields ['speed']"),
+        (dict(nodes=0), "nodes: expected a positive number"),
+        (dict(tolerance_units=("pixels",)), "tolerance_units: expected a tuple of distinct"),
+        (dict(tolerance_units=()), "tolerance_units: expected a tuple of distinct"),
         (
             dict(global_pose_bound={"cnn": {"pose_bound_method": "crown"}}),
             "global_pose_bound: expected pose_bound_method 'forward', 'zonotope' or 'ibp', "

@@ -50,3 +50,25 @@ def test_pose_bound_columns_from_stored_and_csv_records():
         ratios = tables.pose_bound_ratios(records)
         assert len(ratios) == 4
         np.testing.assert_allclose(ratios.tz, (0.5 * np.arange(4) + 1.0) / 20.0)
+
+
+def test_readings_get_a_row_each_and_a_sentence_naming_the_nearer():
+    heatmap = _records()  # from before the field: the 'heatmap' reading
+    paper = _records().drop(columns=[c for c in _records() if c.startswith("pb_")])
+    paper = paper.assign(
+        tolerance_units="paper", status="holds", counterexample=None, argmax_outside=0.25
+    )
+    table = tables.t_global(pd.concat([heatmap, paper], ignore_index=True))
+    by = table.set_index("tolerance_units")
+    assert list(by.index) == ["heatmap", "paper"]
+    assert by.loc["paper", "holds"] == 4 and by.loc["paper", "argmax_outside"] == 0.25
+    assert np.isnan(by.loc["paper", "pb_holds"]) and by.loc["heatmap", "pb_holds"] == 3
+    assert by.loc["heatmap", "verified_rate"] == 0.25 and by.loc["paper", "verified_rate"] == 1.0
+    sentence = tables.reading_comparison(table, "verified_rate", "paper_rate", "Verified rate")
+    # Paper cell (contrast 5e-4, κ = 1, α = 1): 0.570; |0.25 − 0.57| < |1.0 − 0.57|.
+    assert sentence.startswith("Verified rate: under the 'heatmap' reading")
+    assert "0.32" in sentence and "under the 'paper' reading by 0.43" in sentence
+    assert (
+        tables.reading_comparison(tables.t_global(heatmap), "verified_rate", "paper_rate", "x")
+        is None
+    )
