@@ -95,7 +95,7 @@ def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImag
     PnP rejects the keypoints (:func:`kpstudy.evaluate.pose_errors`)."""
     with torch.no_grad():
         uv = dsnt_keypoints(backbone(images).float()).double().numpy()  # heatmap pixels
-    image_uv = to_image_pixels(uv, scale_factors(seed.image_size, backbone.input_size))
+    image_uv = to_image_pixels(uv, scale_factors(seed.image_size, backbone.heatmap_size))
     B = len(uv)
     return pose_errors(
         seed.points_3d,

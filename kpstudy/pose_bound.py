@@ -38,7 +38,10 @@ Verdict, the first rule that applies deciding (``pb_rule``):
   ``unknown`` (a combination outside Ξ that no witness reaches: the regions are
   per-keypoint supersets, so it may not be a real image's). The linearised bound never
   overrules it. A combination that a witness image reaches is decided by ``'witness'``
-  before (the witness's argmax pixels lie in the regions);
+  before (the witness's argmax pixels lie in the regions); and before ``unknown``,
+  :func:`targeted_witness` looks for an image whose argmax is the combination farthest
+  outside Ξ (its pose re-checked like every witness's): found, ``violated`` by
+  ``'witness'``;
 * ``'linearised'`` (more combinations): ``holds`` when ``κ · bound ≤ ε`` on every axis,
   else ``unknown``. Such a ``holds`` covers the argmax head and the *linearised* PnP only.
 """
@@ -69,8 +72,11 @@ __all__ = [
     "linearised_bound",
     "pose_bound",
     "region_pixels",
+    "targeted_witness",
 ]
 
+#: Starting points of :func:`targeted_witness` (the seed and the search's first witnesses).
+TARGETED_STARTS = 4
 #: Most combinations of region pixels (the product of the keypoints' region sizes) that
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
 #: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
@@ -160,6 +166,12 @@ def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) ->
         and ``|Δt_x|, |Δt_y|, |Δt_z|`` (metres); ``inf`` on every axis if PnP flags some
         combination's pose as not valid.
     """
+    return _enumerate(seed, keypoints, R, t, np.ones(6), chunk)[0]
+
+
+def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`enumerated_pose_error` and the combination (one index per keypoint) whose
+    error is farthest outside ``eps (6,)`` (the largest ``max_i error_i / eps_i``)."""
     chunk = ENUMERATION_CHUNK if chunk is None else chunk
     if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
         raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
@@ -169,12 +181,16 @@ def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) ->
             raise ValueError(f"keypoints[{k}]: expected shape (n >= 1, 2), got {p.shape}")
     sizes = tuple(len(p) for p in points)
     total = math.prod(sizes)
-    worst = np.zeros(6)
+    worst, farthest, where = np.zeros(6), -1.0, 0
     for begin in range(0, total, int(chunk)):
         index = np.unravel_index(np.arange(begin, min(begin + int(chunk), total)), sizes)
         V = np.stack([p[i] for p, i in zip(points, index)], axis=1)  # (B, K, 2)
-        worst = np.maximum(worst, _pose_errors(seed, V, R, t).max(0))
-    return worst
+        errors = _pose_errors(seed, V, R, t)
+        worst = np.maximum(worst, errors.max(0))
+        ratio = (errors / eps).max(1)
+        if ratio.max() > farthest:
+            farthest, where = float(ratio.max()), begin + int(ratio.argmax())
+    return worst, np.array(np.unravel_index(where, sizes))
 
 
 def pose_bound(
@@ -296,9 +312,17 @@ def pose_bound(
     elif combinations <= MAX_COMBINATIONS:
         # Exact over the product of the regions; a combination outside Ξ keeps it open,
         # whatever the linearised bound says.
-        exact, enumeration_time = _enumerated(seed, positions, R, t)
+        exact, farthest, enumeration_time = _enumerated(seed, positions, R, t, eps)
         inside = np.all(kappa * exact <= eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
+        if not np.all(exact <= eps):  # a combination outside Ξ: can an image reach it?
+            targets = np.stack([np.rint(p[i]) for p, i in zip(pixels, farthest)])
+            seen = [lam for w in regions.witnesses for lam in w.values()]
+            starts = [torch.zeros(hull.n, dtype=torch.float64), *seen[: TARGETED_STARTS - 1]]
+            lam = targeted_witness(backbone, hull, targets.astype(np.int64), starts)
+            found = None if lam is None else _outside(backbone, hull, seed, R, t, eps, [lam])
+            if found is not None:
+                status, rule, counterexample = "violated", "witness", found
     else:
         inside = np.all(kappa * bound <= eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
@@ -374,23 +398,71 @@ def _regions(key, backbone, hull, centers, stride: int, search: dict):
 _ENUMERATED: dict = {}
 
 
-def _enumerated(seed, positions, R, t) -> tuple[np.ndarray, float]:
-    """:func:`enumerated_pose_error` of the keypoint positions ``(n_k, 2)`` (image pixels)
-    and its seconds; like :func:`_regions`, the last few are kept for the other α, κ
-    cells of the same hull (the key is the content of every input)."""
+def _enumerated(seed, positions, R, t, eps) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`_enumerate` of the keypoint positions ``(n_k, 2)`` (image pixels) and its
+    seconds; like :func:`_regions`, the last few are kept for the other α, κ cells of the
+    same hull (the key is the content of every input)."""
     digest = hashlib.sha1()
-    for array in (*positions, seed.points_3d, seed.K, R, t):
+    for array in (*positions, seed.points_3d, seed.K, R, t, eps):
         array = np.ascontiguousarray(array, dtype=np.float64)
         digest.update(repr(array.shape).encode() + array.tobytes())
     key = digest.hexdigest()
     if key not in _ENUMERATED:
         start = time.perf_counter()
-        exact = enumerated_pose_error(seed, positions, R, t)
+        exact, farthest = _enumerate(seed, positions, R, t, eps)
         while len(_ENUMERATED) >= 4:
             _ENUMERATED.pop(next(iter(_ENUMERATED)))
-        _ENUMERATED[key] = (exact, time.perf_counter() - start)
-    exact, seconds = _ENUMERATED[key]
-    return exact.copy(), seconds
+        _ENUMERATED[key] = (exact, farthest, time.perf_counter() - start)
+    exact, farthest, seconds = _ENUMERATED[key]
+    return exact.copy(), farthest.copy(), seconds
+
+
+def targeted_witness(
+    backbone, hull, targets, starts, *, steps: int = 100, lr: float = 0.1
+) -> torch.Tensor | None:
+    """A point λ of ``hull`` whose image puts every keypoint's argmax on its target pixel,
+    if projected gradient steps find one (an attack: None proves nothing).
+
+    Parameters
+    ----------
+    backbone : nn.Module
+        Heatmap model, ``(B, 3, s, s) → (B, K, H, W)``.
+    hull : kpstudy.verify.ConvexHull
+    targets : array_like of int, shape (K, 2)
+        ``(u, v)`` heatmap pixel per keypoint.
+    starts : list of Tensor, shape (n,)
+        λ to start from (one run each, batched).
+    steps, lr : int, float
+        Adam steps on the vertex weights' logits (a softmax keeps λ in the hull).
+
+    Returns
+    -------
+    Tensor, shape (n,), float64, or None
+        λ whose image's argmax (torch's first maximum) is ``targets`` in float32.
+    """
+    W = backbone.heatmap_size
+    targets = torch.as_tensor(np.asarray(targets), dtype=torch.int64)
+    flat = (targets[:, 1] * W + targets[:, 0]).view(1, -1, 1)  # (1, K, 1)
+    lam0 = torch.stack([torch.as_tensor(s, dtype=torch.float64) for s in starts])
+    weights = torch.cat([1.0 - lam0.sum(1, keepdim=True), lam0], 1).clamp_min(1e-3)
+    logits = weights.log().float().requires_grad_(True)
+    optimiser = torch.optim.Adam([logits], lr=lr)
+    for _ in range(steps + 1):
+        with torch.enable_grad():
+            lam = torch.softmax(logits, 1)[:, 1:]
+            heat = backbone(hull.image(lam, dtype=torch.float32)).flatten(2)  # (B, K, H·W)
+            target = heat.gather(2, flat.expand(len(heat), -1, -1))[..., 0]
+            rival = heat.scatter(2, flat.expand(len(heat), -1, -1), float("-inf")).amax(2)
+            gap = rival - target  # < 0: the target is the unique maximum
+            done = (gap < 0).all(1)
+            if done.any():
+                return lam[int(done.nonzero()[0])].detach().double()
+            if not gap.requires_grad:  # a model without a gradient in its input
+                return None
+            # The gradient of λ's logits only (the model's parameters get none).
+            (logits.grad,) = torch.autograd.grad(torch.relu(gap + 1e-2).sum(), logits)
+        optimiser.step()
+    return None
 
 
 def _pose_errors(seed, V, R, t) -> np.ndarray:

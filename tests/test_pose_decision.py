@@ -44,6 +44,48 @@ class _Peaks(nn.Module):
         return out
 
 
+class _Ramp(nn.Module):
+    """A differentiable backbone: keypoint k's heatmap is ``1 − b`` at ``peaks[k]`` and
+    ``b·gain[k]`` at ``moved[k]`` (0 elsewhere), ``b`` the image's mean brightness."""
+
+    heatmap_size = input_size = HM
+
+    def __init__(self, peaks, moved, gain):
+        super().__init__()
+        self.peaks, self.moved = (np.asarray(p).astype(np.int64) for p in (peaks, moved))
+        self.gain = torch.as_tensor(gain, dtype=torch.float32)
+
+    def forward(self, x):
+        b = x.flatten(1).mean(1)[:, None]  # (B, 1)
+        out = x.new_zeros(len(x), len(self.peaks), HM * HM)
+        index = lambda p: torch.as_tensor(p[:, 1] * HM + p[:, 0])[None, :, None]  # noqa: E731
+        K = len(self.peaks)
+        out = out.scatter_add(
+            2, index(self.peaks).expand(len(x), -1, 1), (1 - b).expand(-1, K)[..., None]
+        )
+        moved = (b * self.gain.to(x.dtype)).expand(-1, K)[..., None]
+        out = out.scatter_add(2, index(self.moved).expand(len(x), -1, 1), moved)
+        return out.view(len(x), -1, HM, HM)
+
+
+def test_the_targeted_witness_reaches_joint_combinations_and_only_those():
+    peaks = np.array([[10, 10], [20, 20], [30, 30]])
+    moved = peaks + [1, 0]
+    # Keypoint k moves once b·gain_k > 1 − b: at b > 1/(1 + gain_k) = 0.75, 0.5, 0.25.
+    model = _Ramp(peaks, moved, [1 / 3, 1.0, 3.0])
+    hull = _hull()
+    seed = [torch.zeros(1, dtype=torch.float64)]
+    lam = pb.targeted_witness(model, hull, moved, seed)
+    assert lam is not None and lam.item() > 0.75
+    heat = model(hull.image(lam[None], dtype=torch.float32))
+    assert np.array_equal(pb.argmax_keypoints(heat)[0].numpy(), moved)
+    # Keypoint 0 at its peak (b < 0.75) with keypoint 1 moved (b > 0.5): reachable.
+    both = np.stack([peaks[0], moved[1], moved[2]])
+    assert 0.5 < pb.targeted_witness(model, hull, both, seed).item() < 0.75
+    # Keypoint 1 at its peak (b < 0.5) with keypoint 0 moved (b > 0.75): no image does it.
+    assert pb.targeted_witness(model, hull, np.stack([moved[0], peaks[1], moved[2]]), seed) is None
+
+
 @pytest.fixture(scope="module")
 def scene(P, K):
     """A seed image (exact keypoints), its nominal pose and the rounded heatmap pixels."""
@@ -150,6 +192,21 @@ def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch
     assert refuted["pb_status"] == "violated" and refuted["pb_rule"] == "witness"
     # Found among the first images (the hull's vertex or a random image past λ = 0.5).
     assert refuted["pb_counterexample"][0] > 0.5 and refuted["pb_exact"] is None
+
+
+def test_an_enumerated_combination_outside_the_tolerance_is_sought_in_the_hull(scene, monkeypatch):
+    centers = scene[-1]
+    eps, _ = _far_tolerance(scene)
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    # Only the seed among the first images, and no witness from the search: the combination
+    # with keypoint 0 moved (outside Ξ) is left to the targeted search.
+    monkeypatch.setattr(pb, "_first_points", lambda hull, seed: [torch.zeros(1).double()])
+    moved = centers.copy()
+    moved[0] += [8, 0]
+    gain = np.where(np.arange(len(centers)) == 0, 1.0, 0.0)  # only keypoint 0 moves (b > 0.5)
+    record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, gain))
+    assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
+    assert record["pb_counterexample"][0] > 0.5
 
 
 def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
