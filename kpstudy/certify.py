@@ -24,6 +24,7 @@ whether the paper's assumptions (argmax ≈ DSNT, first-order PnP) hold on the i
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
 
@@ -218,7 +219,7 @@ def build_instance(
         M_allocated = pose_sensitivity(
             P, V, K, R, t, scale=allocation_scale(tolerance_units, factors)
         )
-    allocation = allocate_tolerances(M_allocated, eps_r, eps_t, kappa, w1, w2, max_dv=hm)
+    allocation = _allocation(M_allocated, eps_r, eps_t, kappa, w1, w2, hm)
     centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
     if np.any((centers < 0) | (centers >= hm)):
         k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
@@ -242,6 +243,23 @@ def build_instance(
         M=M,
         xi=np.concatenate([eps_r, eps_t]),
     )
+
+
+_ALLOCATIONS: dict = {}
+
+
+def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
+    """:func:`kpstudy.allocation.allocate_tolerances`, the last 64 kept by the content of
+    their inputs: a campaign's hulls of one seed image share its allocation per (α, κ)."""
+    digest = hashlib.sha1()
+    for value in (M, eps_r, eps_t, [kappa, w1, w2, max_dv]):
+        digest.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
+    key = digest.hexdigest()
+    if key not in _ALLOCATIONS:
+        while len(_ALLOCATIONS) >= 64:
+            _ALLOCATIONS.pop(next(iter(_ALLOCATIONS)))
+        _ALLOCATIONS[key] = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=max_dv)
+    return _ALLOCATIONS[key]
 
 
 def certify(

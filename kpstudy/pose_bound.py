@@ -356,7 +356,7 @@ def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
     Ξ (half-widths ``eps``), else None. A point found in the model's dtype counts only if
     the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
     lam = torch.unique(torch.stack(list(points)), dim=0)
-    outside = argmax_outside(backbone, hull.image(lam), seed, R, t, eps)
+    outside = np.flatnonzero(~np.all(_argmax_errors(backbone, hull, seed, R, t, lam) <= eps, 1))
     if outside.size and next(backbone.parameters(), torch.empty(0)).dtype != torch.float64:
         model64 = copy.deepcopy(backbone).double()
         lam = lam[outside]
@@ -367,11 +367,34 @@ def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
 def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
     """Indices of ``images (B, 3, s, s)`` (normalised model inputs) whose argmax → PnP
     pose lies outside Ξ (half-widths ``eps``, 6: degrees, metres) around ``(R, t)``."""
+    errors = argmax_pose_errors(backbone, images, seed, R, t)
+    return np.flatnonzero(~np.all(errors <= eps, axis=1))
+
+
+def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:
+    """Pose errors ``(B, 6)`` (degrees, metres; ``inf`` where PnP flags the pose) of the
+    argmax → PnP pipeline on ``images (B, 3, s, s)`` against ``(R, t)``."""
     factors = scale_factors(seed.image_size, backbone.heatmap_size)
     with torch.no_grad():
         uv = argmax_keypoints(backbone(images)).double().numpy()
-    errors = _pose_errors(seed, to_image_pixels(uv, factors), R, t)
-    return np.flatnonzero(~np.all(errors <= eps, axis=1))
+    return _pose_errors(seed, to_image_pixels(uv, factors), R, t)
+
+
+_ERRORS: dict = {}
+
+
+def _argmax_errors(backbone, hull, seed, R, t, lam) -> np.ndarray:
+    """:func:`argmax_pose_errors` of ``hull.image(lam)``; the last few are kept, since the
+    α, κ cells of one hull ask for the same points (an entry holds its backbone)."""
+    digest = hashlib.sha1()
+    for array in (lam, hull.vertices, R, t, seed.keypoints, seed.K):
+        digest.update(np.ascontiguousarray(np.asarray(array), dtype=np.float64).tobytes())
+    key = (id(backbone), digest.hexdigest())
+    if key not in _ERRORS:
+        while len(_ERRORS) >= 4:
+            _ERRORS.pop(next(iter(_ERRORS)))
+        _ERRORS[key] = (backbone, argmax_pose_errors(backbone, hull.image(lam), seed, R, t))
+    return _ERRORS[key][1]
 
 
 _CACHE: dict = {}

@@ -216,6 +216,7 @@ PROFILES = {
         timeout=10.0,
         resnet_timeout=20.0,
         nodes=4,
+        workers=2,
     ),
     "paper": Profile(
         "paper",

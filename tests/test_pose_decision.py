@@ -100,6 +100,7 @@ def scene(P, K):
 def _fresh_caches(monkeypatch):
     monkeypatch.setattr(pb, "_CACHE", {})
     monkeypatch.setattr(pb, "_ENUMERATED", {})
+    monkeypatch.setattr(pb, "_ERRORS", {})
 
 
 def _with_regions(monkeypatch, pixels, witnesses=()):
