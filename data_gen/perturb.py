@@ -1,4 +1,4 @@
-"""The study's perturbation sets (paper §7.1, docs/design.md §5) and the convex hulls they give.
+"""The study's perturbation sets (paper §8.1, docs/design.md §5) and the convex hulls they give.
 
 ``make_perturbations(data_dir, kind, …)`` writes ``data_dir/perturbations/<kind>/``
 with ``meta.json`` and one file per perturbed image, for seed images drawn from the

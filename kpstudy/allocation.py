@@ -1,4 +1,4 @@
-"""Optimal integer allocation of keypoint tolerances (paper §5.2, docs/design.md §4.2-4.3).
+"""Optimal integer allocation of keypoint tolerances (paper §6.2, docs/design.md §4.2-4.3).
 
 Given the sensitivity ``M = dξ/dv`` (6, 2K) and pose tolerances ``ε = [ε_r, ε_t]``, a box
 of integer half-widths ``δv`` (heatmap pixels) around the keypoints keeps every pose error

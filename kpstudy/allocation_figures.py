@@ -38,7 +38,7 @@ __all__ = [
     "plot_keypoint_samples",
 ]
 
-#: Tolerance factors α of F-alloc (paper §8.3).
+#: Tolerance factors α of F-alloc (paper §8.3, Fig. 9).
 ALPHAS = (0.5, 1.0, 1.5, 2.0)
 #: Columns of :func:`allocation_frame`.
 FRAME_COLUMNS = ("image", "alpha", "kappa", "keypoint", "du", "dv")

@@ -1,4 +1,4 @@
-"""One seed image → one verification instance → one record (paper §5, docs/design.md §1).
+"""One seed image → one verification instance → one record (paper §5–6, docs/design.md §1).
 
 :func:`certify` runs the method end to end for a trained backbone, the seed image's
 ground truth and the vertices of a convex hull of perturbed images:

@@ -1,4 +1,4 @@
-"""Symmetry and unimodality indicators of normalised heatmaps (paper §7.2, docs/design.md §4.10).
+"""Symmetry and unimodality indicators of normalised heatmaps (paper §7.1, §8.2; design §4.10).
 
 The network returns one unnormalised heatmap per keypoint; a softmax over all ``H × W`` pixels
 turns it into a discrete distribution. Its two marginals are distributions over pixel indices:

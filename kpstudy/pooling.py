@@ -1,6 +1,6 @@
 """Per-keypoint average pooling: the proxy model's cells and its class ``c_k``.
 
-A keypoint at heatmap pixel ``c`` with allocated tolerance ``dv`` (paper §5.3, docs/design.md §4.4)
+A keypoint at heatmap pixel ``c`` with allocated tolerance ``dv`` (paper §6.3, docs/design.md §4.4)
 gets, on each axis, an average pooling with ``kernel = stride = 2 dv + 1`` and a zero padding
 ``pad_before = (dv - c) mod stride`` so that one pooling window (a *cell*) is exactly
 ``[c - dv, c + dv]``. ``pad_after`` completes the last window, so every real pixel lies in

@@ -1,7 +1,7 @@
 """Sensitivity of the PnP pose to its keypoints, by the implicit function theorem.
 
 At the PnP optimum ξ* of ``G(ξ; v) = Σ_k ||π(K (R(ξ) p_k + t)) − v_k||²`` the gradient
-``G_ξ`` vanishes for every ``v``, so ``M = dξ/dv = −G_ξξ⁻¹ G_ξv`` (paper §5.1, the extra
+``G_ξ`` vanishes for every ``v``, so ``M = dξ/dv = −G_ξξ⁻¹ G_ξv`` (paper §6.1, the extra
 δz row of its M̃ vanishes with ``G_ξ``). Both second derivatives are exact, by
 ``torch.func`` autodiff in float64. ξ = [roll, pitch, yaw (degrees, DESIGN §3),
 tx, ty, tz (metres)], v = [u1, v1, u2, v2, …] (pixels).

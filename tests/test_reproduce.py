@@ -39,6 +39,7 @@ TINY = replace(
     },
     global_pose_bound={m: dict(pose_bound_timeout=1.0) for m in ("cnn", "cnn_affine")},
     figure_images=2,
+    workers=1,
 )
 
 

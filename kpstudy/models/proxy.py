@@ -3,7 +3,7 @@
 Softmax + DSNT/argmax heads are replaced by one :class:`~kpstudy.pooling.CellAvgPool2d`
 per heatmap channel, built around the keypoint's nominal heatmap pixel with its allocated
 tolerance, so that "the keypoint's cell wins" is a linear classification spec
-(paper §5.3, docs/design.md §4.4–4.6).
+(paper §5.2 and §6.3, docs/design.md §4.4–4.6).
 """
 
 from __future__ import annotations
