@@ -213,12 +213,8 @@ def build_instance(
         )
     R, t = nominal
     factors = scale_factors(seed.image_size, hm)
-    M = pose_sensitivity(P, V, K, R, t, scale=factors)
-    M_allocated = M
-    if tolerance_units != "heatmap":
-        M_allocated = pose_sensitivity(
-            P, V, K, R, t, scale=allocation_scale(tolerance_units, factors)
-        )
+    M = _sensitivity(P, V, K, R, t, factors)
+    M_allocated = _sensitivity(P, V, K, R, t, allocation_scale(tolerance_units, factors))
     allocation = _allocation(M_allocated, eps_r, eps_t, kappa, w1, w2, hm)
     centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
     if np.any((centers < 0) | (centers >= hm)):
@@ -245,16 +241,35 @@ def build_instance(
     )
 
 
+_SENSITIVITIES: dict = {}
+
+
+def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
+    """:func:`kpstudy.sensitivity.pose_sensitivity` (about a second each), the last few
+    kept by the content of their inputs: a campaign's instances of one seed share it."""
+    key = _digest(P, V, K, R, t, () if scale is None else scale)
+    if key not in _SENSITIVITIES:
+        while len(_SENSITIVITIES) >= 16:
+            _SENSITIVITIES.pop(next(iter(_SENSITIVITIES)))
+        _SENSITIVITIES[key] = pose_sensitivity(P, V, K, R, t, scale=scale)
+    return _SENSITIVITIES[key].copy()
+
+
+def _digest(*arrays) -> str:
+    digest = hashlib.sha1()
+    for value in arrays:
+        value = np.ascontiguousarray(value, dtype=np.float64)
+        digest.update(repr(value.shape).encode() + value.tobytes())
+    return digest.hexdigest()
+
+
 _ALLOCATIONS: dict = {}
 
 
 def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
     """:func:`kpstudy.allocation.allocate_tolerances`, the last 64 kept by the content of
     their inputs: a campaign's hulls of one seed image share its allocation per (α, κ)."""
-    digest = hashlib.sha1()
-    for value in (M, eps_r, eps_t, [kappa, w1, w2, max_dv]):
-        digest.update(np.ascontiguousarray(value, dtype=np.float64).tobytes())
-    key = digest.hexdigest()
+    key = _digest(M, eps_r, eps_t, [kappa, w1, w2, max_dv])
     if key not in _ALLOCATIONS:
         while len(_ALLOCATIONS) >= 64:
             _ALLOCATIONS.pop(next(iter(_ALLOCATIONS)))
@@ -376,7 +391,7 @@ def certify(
         record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)
     if pose_bound_timeout is not None:
-        M_image = pose_sensitivity(P, V, K, R, t)
+        M_image = _sensitivity(P, V, K, R, t, None)
         record.update(
             pose_bound(
                 backbone,

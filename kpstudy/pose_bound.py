@@ -62,7 +62,8 @@ from kpstudy.models.proxy import build_proxy
 from kpstudy.pnp import solve_pnp_batch
 from kpstudy.pooling import cell_bounds, keypoint_pooling, num_cells
 from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
-from kpstudy.verify import reachable_argmax
+from kpstudy.verify import Regions, reachable_argmax
+from kpstudy.verify.reachable import check_search
 
 __all__ = [
     "ENUMERATION_CHUNK",
@@ -95,13 +96,14 @@ def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
     """
     out = []
     for k, (horizontal, vertical) in enumerate(pooling):
-        n_h = num_cells(horizontal, heatmap_size)
-        pixels = set()
-        for cell in regions.possible[k].tolist():
-            v0, v1 = cell_bounds(cell // n_h, vertical, heatmap_size)
-            u0, u1 = cell_bounds(cell % n_h, horizontal, heatmap_size)
-            pixels.update((u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1))
-        out.append(np.array(sorted(pixels), dtype=np.float64).reshape(-1, 2))
+        n_h, n_v = num_cells(horizontal, heatmap_size), num_cells(vertical, heatmap_size)
+        u_bounds = np.array([cell_bounds(i, horizontal, heatmap_size) for i in range(n_h)])
+        v_bounds = np.array([cell_bounds(i, vertical, heatmap_size) for i in range(n_v)])
+        cells = np.asarray(regions.possible[k], dtype=np.int64)
+        mask = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
+        for (u0, u1), (v0, v1) in zip(u_bounds[cells % n_h], v_bounds[cells // n_h]):
+            mask[u0 : u1 + 1, v0 : v1 + 1] = True
+        out.append(np.argwhere(mask).astype(np.float64).reshape(-1, 2))  # sorted by (u, v)
     return out
 
 
@@ -274,6 +276,7 @@ def pose_bound(
     start = time.perf_counter()
     if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
         raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
+    check_search(method, timeout, max_nodes, start_depth)
     hm = backbone.heatmap_size
     factors = scale_factors(seed.image_size, hm)
     V = np.asarray(seed.keypoints, dtype=np.float64)
@@ -283,12 +286,13 @@ def pose_bound(
     # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
     early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
     skipped = early is not None
-    if skipped:
-        max_nodes = 0
     search = dict(method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth)
     key += (centers.tobytes(), int(stride), repr(sorted(search.items())))
     before = time.perf_counter() - start
-    regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, search)
+    if skipped:
+        regions, pixels, search_time = _everywhere(hm), [_grid(hm)] * len(V), 0.0
+    else:
+        regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, search)
     start = time.perf_counter()  # the search is counted once, cached or not
     positions = [to_image_pixels(p, factors) for p in pixels]  # (n_k, 2) image pixels
     deviations = [p - v for p, v in zip(positions, V)]
@@ -344,6 +348,18 @@ def pose_bound(
     }
 
 
+def _grid(heatmap_size: int) -> np.ndarray:
+    """Every heatmap pixel ``(u, v)``, sorted, ``(heatmap_size², 2)``."""
+    u, v = np.meshgrid(np.arange(heatmap_size), np.arange(heatmap_size), indexing="ij")
+    return np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+
+
+def _everywhere(heatmap_size: int) -> Regions:
+    """The regions of a search that was skipped: every pixel possible, none reached."""
+    size = heatmap_size * heatmap_size
+    return Regions([size], [np.arange(size)], [{}], 0.0, 0, {"stopped": None})
+
+
 def _first_points(hull, sample_seed: int, samples: int = 64) -> list[torch.Tensor]:
     """λ of the seed image, the hull's other vertices and ``samples`` random images."""
     corners = torch.eye(hull.n, dtype=torch.float64)
@@ -357,11 +373,17 @@ def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
     the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
     lam = torch.unique(torch.stack(list(points)), dim=0)
     outside = np.flatnonzero(~np.all(_argmax_errors(backbone, hull, seed, R, t, lam) <= eps, 1))
-    if outside.size and next(backbone.parameters(), torch.empty(0)).dtype != torch.float64:
-        model64 = copy.deepcopy(backbone).double()
-        lam = lam[outside]
-        outside = argmax_outside(model64, hull.image(lam, dtype=torch.float64), seed, R, t, eps)
-    return lam[outside[0]].tolist() if outside.size else None
+    if not outside.size:
+        return None
+    if next(backbone.parameters(), torch.empty(0)).dtype == torch.float64:
+        return lam[outside[0]].tolist()
+    model64 = copy.deepcopy(backbone).double()
+    for rows in np.array_split(outside, -(-len(outside) // 4)):  # the first confirmed
+        images = hull.image(lam[rows], dtype=torch.float64)
+        confirmed = argmax_outside(model64, images, seed, R, t, eps)
+        if confirmed.size:
+            return lam[rows[confirmed[0]]].tolist()
+    return None
 
 
 def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:

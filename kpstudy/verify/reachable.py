@@ -150,24 +150,14 @@ def reachable_argmax(
     (array([2079, 2080, 2143]), True)
     """
     start = time.perf_counter()
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    check_search(method, timeout, max_nodes, start_depth, batch)
     if input_set.domain not in ("simplex", "cube"):
         raise ValueError(
             f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
         )
-    check_budget(timeout, max_nodes or None, batch)
-    if max_nodes is not None and (isinstance(max_nodes, bool) or max_nodes < 0):
-        raise ValueError(f"max_nodes: expected None or an integer >= 0, got {max_nodes!r}")
     for name, v, least in (("candidates", candidates, 1), ("samples", samples, 0)):
         if isinstance(v, bool) or not (isinstance(v, int) and v >= least):
             raise ValueError(f"{name}: expected an integer >= {least}, got {v!r}")
-    if isinstance(start_depth, bool) or not (
-        isinstance(start_depth, int) and 0 <= start_depth <= MAX_START_DEPTH
-    ):
-        raise ValueError(
-            f"start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {start_depth!r}"
-        )
     sizes = [int(s) for s in group_sizes]
     if not sizes or min(sizes) < 1:
         raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
@@ -239,6 +229,22 @@ def reachable_argmax(
             "candidates": candidates,
         },
     )
+
+
+def check_search(method, timeout, max_nodes, start_depth, batch=None) -> None:
+    """Raise ``ValueError`` naming the first of :func:`reachable_argmax`'s search
+    arguments that is not valid (before any work)."""
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    check_budget(timeout, max_nodes or None, batch)
+    if max_nodes is not None and (isinstance(max_nodes, bool) or max_nodes < 0):
+        raise ValueError(f"max_nodes: expected None or an integer >= 0, got {max_nodes!r}")
+    if isinstance(start_depth, bool) or not (
+        isinstance(start_depth, int) and 0 <= start_depth <= MAX_START_DEPTH
+    ):
+        raise ValueError(
+            f"start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {start_depth!r}"
+        )
 
 
 class _Reach:
