@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import emit
+from benchmarks.common import emit, study_hulls
 from kpstudy.preprocess import normalise, resize_to_input
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ConvexHull, bound_profile
@@ -65,28 +65,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if not all(0 < v <= 1 for v in args.scales):
         ap.error(f"--scales: expected factors in (0, 1], got {args.scales}")
-    from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
-
-    rows = load_perturbations(args.data, args.kind)["images"]
-    ids = sorted({r["image_id"] for r in rows})[args.seed_index :]
-    if args.kind in DEFAULT_LEVELS:
-        image_id = ids[0]
-        level = args.level or min(r["level"] for r in rows if r["image_id"] == image_id)
-        V = hull_vertices(args.data, image_id, args.kind, level=level)
-        hulls = [dict(image_id=image_id, m=2, overlapping=None, V=V)]
-    else:
-        level = None
-        overlaps = {"no": [False], "yes": [True], "both": [False, True]}[args.overlapping]
-        hulls = []
-        for o in overlaps:
-            count = {
-                i: sum(r["image_id"] == i and r["overlapping"] == o for r in rows) for i in ids
-            }
-            for m in args.m:  # the first seed image (from --seed-index) with m such images
-                image_id = next((i for i in ids if count[i] >= m), None)
-                if image_id is not None:
-                    V = hull_vertices(args.data, image_id, args.kind, m, o)
-                    hulls.append(dict(image_id=image_id, m=m, overlapping=o, V=V))
+    level, hulls = study_hulls(
+        args.data, args.kind, args.m, args.overlapping, args.seed_index, args.level
+    )
     out = {"kind": args.kind, "level": level, "runs": []}
     for name, path in args.checkpoint:
         net, _ = load_checkpoint(path)

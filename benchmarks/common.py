@@ -51,3 +51,29 @@ def emit(name: str, result: dict) -> dict:
     }
     print(json.dumps(result), flush=True)
     return result
+
+
+def study_hulls(data, kind: str, ms, overlapping: str, seed_index: int, level=None):
+    """The level used (global kinds; ``level`` or the seed's first) and hulls of ``kind``
+    from ``data``'s perturbation sets: per overlap class (``'no'``, ``'yes'``, ``'both'``)
+    and ``m`` of ``ms``, the first seed image from ``seed_index`` with ``m`` such images;
+    for a global kind, the first seed's hull. Each a dict of ``image_id``, ``m``,
+    ``overlapping`` and the vertices ``V (n+1, H, W, 3)``."""
+    from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
+
+    rows = load_perturbations(data, kind)["images"]
+    ids = sorted({r["image_id"] for r in rows})[seed_index:]
+    if kind in DEFAULT_LEVELS:
+        image_id = ids[0]
+        level = level or min(r["level"] for r in rows if r["image_id"] == image_id)
+        V = hull_vertices(data, image_id, kind, level=level)
+        return level, [dict(image_id=image_id, m=2, overlapping=None, V=V)]
+    hulls = []
+    for o in {"no": [False], "yes": [True], "both": [False, True]}[overlapping]:
+        count = {i: sum(r["image_id"] == i and r["overlapping"] == o for r in rows) for i in ids}
+        for m in ms:
+            image_id = next((i for i in ids if count[i] >= m), None)
+            if image_id is not None:
+                V = hull_vertices(data, image_id, kind, m, o)
+                hulls.append(dict(image_id=image_id, m=m, overlapping=o, V=V))
+    return None, hulls

@@ -1,0 +1,88 @@
+"""The pose-bound method's region search, model beside model: seconds per node.
+
+For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m`` and
+overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
+``bound_profile``), :func:`kpstudy.verify.reachable_argmax` on each backbone's stride-1
+proxy (the argmax head's own pixels, as :func:`kpstudy.pose_bound.pose_bound` builds it)
+with ``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
+``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
+node, what stopped the search, whether the regions are complete (one witnessed pixel per
+possible one) and the mean possible pixels per keypoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.bound_profile import _checkpoint
+from benchmarks.common import emit, study_hulls
+from kpstudy.data import load_keypoint_set
+from kpstudy.models.proxy import build_proxy
+from kpstudy.pooling import keypoint_pooling
+from kpstudy.preprocess import normalise, resize_to_input, scale_factors, to_input_pixels
+from kpstudy.train import load_checkpoint
+from kpstudy.verify import ConvexHull, reachable_argmax
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--checkpoint", type=_checkpoint, nargs="+", required=True)
+    ap.add_argument("--data", type=Path, required=True, help="a dataset with perturbation sets")
+    ap.add_argument("--kind", default="objects", help="objects or blocks")
+    ap.add_argument("--m", type=int, nargs="+", default=[2, 3, 4])
+    ap.add_argument("--overlapping", choices=("no", "yes", "both"), default="no")
+    ap.add_argument("--seed-index", type=int, default=0)
+    ap.add_argument("--method", default="zonotope", help="forward, zonotope or ibp")
+    ap.add_argument("--nodes", type=int, default=4, help="node budget per hull")
+    ap.add_argument("--start-depth", type=int, default=2)
+    ap.add_argument("--timeout", type=float, default=600.0, help="a cap, seconds per hull")
+    args = ap.parse_args(argv)
+    _, hulls = study_hulls(args.data, args.kind, args.m, args.overlapping, args.seed_index)
+    out = {"kind": args.kind, "method": args.method, "nodes": args.nodes, "runs": []}
+    for name, path in args.checkpoint:
+        net, _ = load_checkpoint(path)
+        net.eval()
+        hm = net.heatmap_size
+        test = load_keypoint_set(args.data, "test", net.input_size)
+        for hull_args in hulls:
+            index = list(test.image_ids).index(hull_args["image_id"])
+            uv = np.asarray(test.image_keypoints[index], dtype=np.float64)
+            factors = scale_factors(tuple(test.image_size), hm)
+            centers = np.clip(np.rint(to_input_pixels(uv, factors)), 0, hm - 1).astype(np.int64)
+            pooling = keypoint_pooling(centers, np.zeros_like(centers), (hm, hm))
+            proxy = build_proxy(net, pooling, centers).eval()
+            x = normalise(np.stack([resize_to_input(v, net.input_size) for v in hull_args["V"]]))
+            hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
+            start = time.perf_counter()
+            regions = reachable_argmax(
+                proxy,
+                hull,
+                proxy.spec.group_sizes,
+                method=args.method,
+                timeout=args.timeout,
+                max_nodes=args.nodes,
+                start_depth=args.start_depth,
+            )
+            seconds = time.perf_counter() - start
+            out["runs"].append(
+                {
+                    "checkpoint": name,
+                    **{k: hull_args[k] for k in ("image_id", "m", "overlapping")},
+                    "seconds": seconds,
+                    "nodes": regions.nodes,
+                    "seconds_per_node": seconds / max(regions.nodes, 1),
+                    "stopped": regions.stats["stopped"],
+                    "complete": regions.complete,
+                    "mean_pixels": float(np.mean([len(p) for p in regions.possible])),
+                }
+            )
+    return emit("region_search", out)
+
+
+if __name__ == "__main__":
+    main()
