@@ -84,8 +84,9 @@ class Profile:
     images, samples : T-prob's overhead views and Monte Carlo samples per view.
     seeds : seed images per campaign (≤ ``perturbed_seeds``); ``resnet_seeds`` for T-resnet.
     timeout, resnet_timeout : verification seconds per instance (with ``nodes``, a cap).
-    nodes : the allocation method's node budget per instance (``None``: the seconds
-        decide): the same verdicts on any machine.
+    method, nodes : the allocation method's bounds (``'auto'``: the zonotope) and node
+        budget per instance (``None``: the seconds decide): the same verdicts on any
+        machine.
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
         run under (:data:`kpstudy.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
@@ -115,6 +116,7 @@ class Profile:
     resnet_timeout: float
     cnn_images: int | None = None
     resnet_images: int | None = None
+    method: str = "auto"
     nodes: int | None = None
     tolerance_units: tuple = ("heatmap", "paper")
     local_pose_bound: dict = field(default_factory=lambda: dict(LOCAL_POSE_BOUND))
@@ -150,6 +152,10 @@ class Profile:
                 f"tolerance_units: expected a tuple of distinct readings from "
                 f"{TOLERANCE_UNITS}, got {readings!r}"
             )
+        from kpstudy.verify.bounds import METHODS
+
+        if self.method not in ("auto", *METHODS):
+            raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {self.method!r}")
         if self.nodes is not None and (
             isinstance(self.nodes, bool) or int(self.nodes) != self.nodes
         ):
@@ -211,11 +217,12 @@ PROFILES = {
         resnet_images=256,
         images=40,
         samples=1000,
-        seeds=8,
+        seeds=4,
         resnet_seeds=2,
         timeout=10.0,
         resnet_timeout=20.0,
-        nodes=4,
+        method="forward",
+        nodes=2,
         workers=2,
     ),
     "paper": Profile(
@@ -469,7 +476,7 @@ def run_notebooks(
     models = {k: str(p.resolve()) for k, p in checkpoints(out).items()}
     data_dir = str(out / "data")
     readings = list(prof.tolerance_units)
-    campaign = dict(workers=prof.workers, scheduler=scheduler, nodes=prof.nodes)
+    campaign = dict(workers=prof.workers, scheduler=scheduler, method=prof.method, nodes=prof.nodes)
     cnn_campaign = dict(
         data_dir=data_dir,
         checkpoints={name: models[name] for name in ("cnn", "cnn_affine")},

@@ -84,7 +84,6 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     heatmap = records[records.tolerance_units == "heatmap"]
     assert heatmap.pb_status.isin(["holds", "violated", "unknown"]).all()
     assert records[records.tolerance_units == "paper"].pb_status.isna().all()
-    assert (records.nodes <= TINY.nodes).all()
     assert "reading" in (run / "REPORT.md").read_text()
     assert "Pose-bound method" in (run / "REPORT.md").read_text()
     glob = pd.read_csv(run / "tables" / "t_global.csv")

@@ -64,7 +64,9 @@ def verify(
         Seconds before the search stops with ``'unknown'`` (checked between nodes and,
         inside a node's bounds, between layers).
     max_nodes : int, optional
-        Most nodes to bound.
+        Node budget: no further batch of nodes is bounded once this many are (a batch
+        may pass it; batches depend on sizes only, so the verdict does not depend on the
+        machine's speed).
     batch : int, optional
         Nodes bounded together (default: as many as fit in ``memory`` elements, counting
         a zonotope's error symbols).
