@@ -200,9 +200,9 @@ LOCAL_POSE_BOUND = {
         pose_bound_start_depth=2,
     ),
 }
-#: The same in T-global: the zonotope for both, up to 8 nodes per hull.
+#: The same in T-global: the zonotope for both, up to 4 nodes per hull.
 GLOBAL_POSE_BOUND = {
-    model: dict(pose_bound_method="zonotope", pose_bound_timeout=120.0, pose_bound_nodes=8)
+    model: dict(pose_bound_method="zonotope", pose_bound_timeout=120.0, pose_bound_nodes=4)
     for model in ("cnn", "cnn_affine")
 }
 
@@ -215,7 +215,7 @@ PROFILES = {
         cnn_epochs=16,
         resnet_epochs=1,
         resnet_images=256,
-        images=40,
+        images=30,
         samples=1000,
         seeds=4,
         resnet_seeds=2,
