@@ -763,15 +763,13 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
-    if settings.nodes is not None and (
-        isinstance(settings.nodes, bool)
-        or not isinstance(settings.nodes, int)
-        or settings.nodes < 1
-    ):
-        raise ValueError(f"nodes: expected None or an integer >= 1, got {settings.nodes!r}")
-    nodes, depth = settings.pose_bound_nodes, settings.pose_bound_start_depth
-    if nodes is not None and (isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1):
-        raise ValueError(f"pose_bound_nodes: expected None or an integer >= 1, got {nodes!r}")
+    for name in ("nodes", "pose_bound_nodes"):
+        nodes = getattr(settings, name)
+        if nodes is not None and (
+            isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1
+        ):
+            raise ValueError(f"{name}: expected None or an integer >= 1, got {nodes!r}")
+    depth = settings.pose_bound_start_depth
     from kpstudy.verify.reachable import MAX_START_DEPTH
     from kpstudy.verify.reachable import METHODS as REGION_METHODS
 

@@ -24,7 +24,6 @@ whether the paper's assumptions (argmax ≈ DSNT, first-order PnP) hold on the i
 
 from __future__ import annotations
 
-import hashlib
 import time
 from dataclasses import dataclass
 
@@ -33,6 +32,7 @@ import torch
 from torch import nn
 
 from kpstudy import _checks
+from kpstudy._memo import digest, remember
 from kpstudy.allocation import Allocation, allocate_tolerances, allocation_scale
 from kpstudy.evaluate import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
@@ -242,39 +242,24 @@ def build_instance(
 
 
 _SENSITIVITIES: dict = {}
-
-
-def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
-    """:func:`kpstudy.sensitivity.pose_sensitivity` (about a second each), the last few
-    kept by the content of their inputs: a campaign's instances of one seed share it."""
-    key = _digest(P, V, K, R, t, () if scale is None else scale)
-    if key not in _SENSITIVITIES:
-        while len(_SENSITIVITIES) >= 16:
-            _SENSITIVITIES.pop(next(iter(_SENSITIVITIES)))
-        _SENSITIVITIES[key] = pose_sensitivity(P, V, K, R, t, scale=scale)
-    return _SENSITIVITIES[key].copy()
-
-
-def _digest(*arrays) -> str:
-    digest = hashlib.sha1()
-    for value in arrays:
-        value = np.ascontiguousarray(value, dtype=np.float64)
-        digest.update(repr(value.shape).encode() + value.tobytes())
-    return digest.hexdigest()
-
-
 _ALLOCATIONS: dict = {}
 
 
+def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
+    """:func:`kpstudy.sensitivity.pose_sensitivity` (its first call in a process takes
+    about 2 s), kept by the content of its inputs: a campaign's instances of one seed
+    image share it."""
+    key = digest(P, V, K, R, t, () if scale is None else scale)
+    make = lambda: pose_sensitivity(P, V, K, R, t, scale=scale)  # noqa: E731
+    return remember(_SENSITIVITIES, key, make, 16).copy()
+
+
 def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
-    """:func:`kpstudy.allocation.allocate_tolerances`, the last 64 kept by the content of
-    their inputs: a campaign's hulls of one seed image share its allocation per (α, κ)."""
-    key = _digest(M, eps_r, eps_t, [kappa, w1, w2, max_dv])
-    if key not in _ALLOCATIONS:
-        while len(_ALLOCATIONS) >= 64:
-            _ALLOCATIONS.pop(next(iter(_ALLOCATIONS)))
-        _ALLOCATIONS[key] = allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=max_dv)
-    return _ALLOCATIONS[key]
+    """:func:`kpstudy.allocation.allocate_tolerances`, kept by the content of its inputs:
+    a campaign's hulls of one seed image share its allocation per (α, κ)."""
+    key = digest(M, eps_r, eps_t, [kappa, w1, w2, max_dv])
+    make = lambda: allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=max_dv)  # noqa: E731
+    return remember(_ALLOCATIONS, key, make, 64)
 
 
 def certify(

@@ -49,13 +49,13 @@ Verdict, the first rule that applies deciding (``pb_rule``):
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 import time
 
 import numpy as np
 import torch
 
+from kpstudy._memo import digest, remember
 from kpstudy.geometry import euler_from_matrix, wrap_degrees
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.proxy import build_proxy
@@ -281,7 +281,7 @@ def pose_bound(
     factors = scale_factors(seed.image_size, hm)
     V = np.asarray(seed.keypoints, dtype=np.float64)
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
-    key = (id(backbone), hashlib.sha1(hull.vertices.numpy().tobytes()).hexdigest())
+    key = (id(backbone), digest(hull.vertices))
     # Witnesses first: the seed, the hull's corners and random images. One whose argmax
     # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
     early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
@@ -408,15 +408,9 @@ _ERRORS: dict = {}
 def _argmax_errors(backbone, hull, seed, R, t, lam) -> np.ndarray:
     """:func:`argmax_pose_errors` of ``hull.image(lam)``; the last few are kept, since the
     α, κ cells of one hull ask for the same points (an entry holds its backbone)."""
-    digest = hashlib.sha1()
-    for array in (lam, hull.vertices, R, t, seed.keypoints, seed.K):
-        digest.update(np.ascontiguousarray(np.asarray(array), dtype=np.float64).tobytes())
-    key = (id(backbone), digest.hexdigest())
-    if key not in _ERRORS:
-        while len(_ERRORS) >= 4:
-            _ERRORS.pop(next(iter(_ERRORS)))
-        _ERRORS[key] = (backbone, argmax_pose_errors(backbone, hull.image(lam), seed, R, t))
-    return _ERRORS[key][1]
+    key = (id(backbone), digest(lam, hull.vertices, R, t, seed.keypoints, seed.K))
+    make = lambda: (backbone, argmax_pose_errors(backbone, hull.image(lam), seed, R, t))  # noqa: E731
+    return remember(_ERRORS, key, make, 4)[1]
 
 
 _CACHE: dict = {}
@@ -426,18 +420,17 @@ def _regions(key, backbone, hull, centers, stride: int, search: dict):
     """Possible pixels of each keypoint over ``hull`` and the search's seconds; the last
     few are kept, since the instances of one hull (its α, κ cells) follow each other.
     An entry holds its backbone, so the ``id`` in its key cannot be reused meanwhile."""
-    if key not in _CACHE:
+
+    def make():
         start = time.perf_counter()
         hm = backbone.heatmap_size
         pooling = keypoint_pooling(centers, np.full_like(centers, (stride - 1) // 2), (hm, hm))
         proxy = build_proxy(backbone, pooling, centers).eval()
-        sizes = proxy.spec.group_sizes
-        regions = reachable_argmax(proxy, hull, sizes, **search)
+        regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, **search)
         pixels = region_pixels(regions, pooling, hm)
-        while len(_CACHE) >= 4:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = (backbone, regions, pixels, time.perf_counter() - start)
-    return _CACHE[key][1:]
+        return backbone, regions, pixels, time.perf_counter() - start
+
+    return remember(_CACHE, key, make, 4)[1:]
 
 
 _ENUMERATED: dict = {}
@@ -447,18 +440,13 @@ def _enumerated(seed, positions, R, t, eps) -> tuple[np.ndarray, np.ndarray, flo
     """:func:`_enumerate` of the keypoint positions ``(n_k, 2)`` (image pixels) and its
     seconds; like :func:`_regions`, the last few are kept for the other α, κ cells of the
     same hull (the key is the content of every input)."""
-    digest = hashlib.sha1()
-    for array in (*positions, seed.points_3d, seed.K, R, t, eps):
-        array = np.ascontiguousarray(array, dtype=np.float64)
-        digest.update(repr(array.shape).encode() + array.tobytes())
-    key = digest.hexdigest()
-    if key not in _ENUMERATED:
+
+    def make():
         start = time.perf_counter()
-        exact, farthest = _enumerate(seed, positions, R, t, eps)
-        while len(_ENUMERATED) >= 4:
-            _ENUMERATED.pop(next(iter(_ENUMERATED)))
-        _ENUMERATED[key] = (exact, farthest, time.perf_counter() - start)
-    exact, farthest, seconds = _ENUMERATED[key]
+        return (*_enumerate(seed, positions, R, t, eps), time.perf_counter() - start)
+
+    key = digest(*positions, seed.points_3d, seed.K, R, t, eps)
+    exact, farthest, seconds = remember(_ENUMERATED, key, make, 4)
     return exact.copy(), farthest.copy(), seconds
 
 
