@@ -38,12 +38,14 @@ Verdict, the first rule that applies deciding (``pb_rule``):
   ``unknown`` (a combination outside Ξ that no witness reaches: the regions are
   per-keypoint supersets, so it may not be a real image's). The linearised bound never
   overrules it. A combination that a witness image reaches is decided by ``'witness'``
-  before (the witness's argmax pixels lie in the regions); and before ``unknown``,
-  :func:`targeted_witness` looks for an image whose argmax is the combination farthest
-  outside Ξ (its pose re-checked like every witness's): found, ``violated`` by
-  ``'witness'``;
+  before (the witness's argmax pixels lie in the regions);
 * ``'linearised'`` (more combinations): ``holds`` when ``κ · bound ≤ ε`` on every axis,
   else ``unknown``. Such a ``holds`` covers the argmax head and the *linearised* PnP only.
+
+Before ``unknown``, :func:`targeted_witness` looks for an image whose argmax is the
+enumerated combination farthest outside Ξ or one of the :data:`TARGETED_MOVES` possible
+one-keypoint moves that alone leave Ξ (:func:`single_moves`); found, and its pose
+re-checked like every witness's, the instance is ``violated`` by ``'witness'``.
 """
 
 from __future__ import annotations
@@ -73,11 +75,15 @@ __all__ = [
     "linearised_bound",
     "pose_bound",
     "region_pixels",
+    "single_moves",
     "targeted_witness",
 ]
 
 #: Starting points of :func:`targeted_witness` (the seed and the search's first witnesses).
 TARGETED_STARTS = 4
+#: One-keypoint moves outside Ξ (:func:`single_moves`, farthest first) that
+#: :func:`pose_bound` seeks with :func:`targeted_witness` before ``'unknown'``.
+TARGETED_MOVES = 4
 #: Most combinations of region pixels (the product of the keypoints' region sizes) that
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
 #: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
@@ -259,7 +265,8 @@ def pose_bound(
     dict
         ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the
         rule that decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module
-        docstring); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
+        docstring); ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in Ξ:
+        the pipeline this method certifies is right at the seed); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
         metres); ``pb_combinations`` (the product of the region sizes: an int, a float
         above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over every combination,
         degrees then metres, ``inf`` if some pose is not valid) when they were enumerated,
@@ -282,6 +289,8 @@ def pose_bound(
     V = np.asarray(seed.keypoints, dtype=np.float64)
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
     key = (id(backbone), digest(hull.vertices))
+    base = argmax_keypoints(_heatmaps(backbone, hull)).double().numpy()[0]  # (K, 2) heatmap px
+    seed_inside = bool(np.all(_pose_errors(seed, to_image_pixels(base[None], factors), R, t) <= eps))
     # Witnesses first: the seed, the hull's corners and random images. One whose argmax
     # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
     early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
@@ -310,34 +319,46 @@ def pose_bound(
     if early is None:
         points = [lam for w in regions.witnesses for lam in w.values()]
         early = _outside(backbone, hull, seed, R, t, eps, points) if points else None
-    exact, enumeration_time = None, 0.0
+    exact, cached = None, 0.0  # seconds of cached steps, as if they ran here
     if early is not None:
         status, rule, counterexample = "violated", "witness", early
     elif combinations <= MAX_COMBINATIONS:
         # Exact over the product of the regions; a combination outside Ξ keeps it open,
         # whatever the linearised bound says.
-        exact, farthest, enumeration_time = _enumerated(seed, positions, R, t, eps)
+        begin = time.perf_counter()
+        exact, farthest, seconds = _enumerated(seed, positions, R, t, eps)
+        cached += seconds - (time.perf_counter() - begin)
         inside = np.all(kappa * exact <= eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
-        if not np.all(exact <= eps):  # a combination outside Ξ: can an image reach it?
-            targets = np.stack([np.rint(p[i]) for p, i in zip(pixels, farthest)])
-            seen = [lam for w in regions.witnesses for lam in w.values()]
-            starts = [torch.zeros(hull.n, dtype=torch.float64), *seen[: TARGETED_STARTS - 1]]
-            lam = targeted_witness(backbone, hull, targets.astype(np.int64), starts)
-            found = None if lam is None else _outside(backbone, hull, seed, R, t, eps, [lam])
-            if found is not None:
-                status, rule, counterexample = "violated", "witness", found
     else:
         inside = np.all(kappa * bound <= eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
+    if status == "unknown":  # before giving up: can an image of the hull leave Ξ?
+        targets = []
+        if exact is not None and not np.all(exact <= eps):  # the farthest combination
+            targets.append(np.stack([p[i] for p, i in zip(pixels, farthest)]))
+        for k, pixel in single_moves(seed, pixels, base, factors, R, t, eps)[:TARGETED_MOVES]:
+            target = np.full_like(base, -1.0)
+            target[k] = pixel
+            targets.append(target)
+        if targets:
+            seen = [lam for w in regions.witnesses for lam in w.values()]
+            starts = [torch.zeros(hull.n, dtype=torch.float64), *seen[: TARGETED_STARTS - 1]]
+            begin = time.perf_counter()
+            lam, seconds = _targeted(backbone, hull, np.rint(targets).astype(np.int64), starts)
+            cached += seconds - (time.perf_counter() - begin)
+            found = None if lam is None else _outside(backbone, hull, seed, R, t, eps, [lam])
+            if found is not None:
+                status, rule, counterexample = "violated", "witness", found
     return {
         "pb_status": status,
         "pb_rule": rule,
+        "pb_seed_inside": seed_inside,
         "pb_bound": bound.tolist(),
         "pb_combinations": combinations if combinations <= 2**53 else float(combinations),
         "pb_exact": None if exact is None else exact.tolist(),
         "pb_nonlinear": nonlinear.tolist(),
-        "pb_time": before + search_time + enumeration_time + time.perf_counter() - start,
+        "pb_time": before + search_time + cached + time.perf_counter() - start,
         "pb_nodes": regions.nodes,
         "pb_stopped": "witness" if skipped else regions.stats["stopped"],
         "pb_complete": regions.complete,
@@ -413,6 +434,28 @@ def _argmax_errors(backbone, hull, seed, R, t, lam) -> np.ndarray:
     return remember(_ERRORS, key, make, 4)[1]
 
 
+_ATTACKS: dict = {}
+
+
+def _targeted(backbone, hull, targets, starts) -> tuple[torch.Tensor | None, float]:
+    """:func:`targeted_witness` and its seconds; the last few are kept, since the α, κ
+    cells of one hull often seek the same moves (an entry holds its backbone)."""
+
+    def make():
+        begin = time.perf_counter()
+        lam = targeted_witness(backbone, hull, targets, starts)
+        return backbone, lam, time.perf_counter() - begin
+
+    key = (id(backbone), digest(targets, hull.vertices, *starts))
+    return remember(_ATTACKS, key, make, 4)[1:]
+
+
+def _heatmaps(backbone, hull) -> torch.Tensor:
+    """The backbone's heatmaps ``(1, K, H, W)`` of the hull's seed image (λ = 0)."""
+    with torch.no_grad():
+        return backbone(hull.image(torch.zeros(1, hull.n, dtype=torch.float64)))
+
+
 _CACHE: dict = {}
 
 
@@ -453,40 +496,49 @@ def _enumerated(seed, positions, R, t, eps) -> tuple[np.ndarray, np.ndarray, flo
 def targeted_witness(
     backbone, hull, targets, starts, *, steps: int = 100, lr: float = 0.1
 ) -> torch.Tensor | None:
-    """A point λ of ``hull`` whose image puts every keypoint's argmax on its target pixel,
-    if projected gradient steps find one (an attack: None proves nothing).
+    """A point λ of ``hull`` whose image puts keypoints' argmax on target pixels, if
+    projected gradient steps find one (an attack: None proves nothing).
 
     Parameters
     ----------
     backbone : nn.Module
         Heatmap model, ``(B, 3, s, s) → (B, K, H, W)``.
     hull : kpstudy.verify.ConvexHull
-    targets : array_like of int, shape (K, 2)
-        ``(u, v)`` heatmap pixel per keypoint.
+    targets : array_like of int, shape (K, 2) or (T, K, 2)
+        ``(u, v)`` heatmap pixel per keypoint, for one target or T alternatives (all
+        searched together); a negative entry leaves that keypoint free.
     starts : list of Tensor, shape (n,)
-        λ to start from (one run each, batched).
+        λ to start from (one run per start and target, batched).
     steps, lr : int, float
         Adam steps on the vertex weights' logits (a softmax keeps λ in the hull).
 
     Returns
     -------
     Tensor, shape (n,), float64, or None
-        λ whose image's argmax (torch's first maximum) is ``targets`` in float32.
+        λ whose image's argmax (torch's first maximum) is one target's pixels, on every
+        keypoint that target sets, in float32.
     """
     W = backbone.heatmap_size
     targets = torch.as_tensor(np.asarray(targets), dtype=torch.int64)
-    flat = (targets[:, 1] * W + targets[:, 0]).view(1, -1, 1)  # (1, K, 1)
+    targets = targets[None] if targets.ndim == 2 else targets  # (T, K, 2)
+    if targets.ndim != 3 or targets.shape[-1] != 2 or not len(targets):
+        raise ValueError(f"targets: expected shape (K, 2) or (T, K, 2), got {tuple(targets.shape)}")
+    T, S = len(targets), len(starts)
+    fixed = (targets >= 0).all(-1).repeat_interleave(S, 0)  # (T·S, K): the set keypoints
+    flat = (targets[..., 1] * W + targets[..., 0]).clamp_min(0)
+    flat = flat.repeat_interleave(S, 0)[..., None]  # (T·S, K, 1)
     lam0 = torch.stack([torch.as_tensor(s, dtype=torch.float64) for s in starts])
     weights = torch.cat([1.0 - lam0.sum(1, keepdim=True), lam0], 1).clamp_min(1e-3)
-    logits = weights.log().float().requires_grad_(True)
+    logits = weights.log().float().repeat(T, 1).requires_grad_(True)  # (T·S, n + 1)
     optimiser = torch.optim.Adam([logits], lr=lr)
     for _ in range(steps + 1):
         with torch.enable_grad():
             lam = torch.softmax(logits, 1)[:, 1:]
             heat = backbone(hull.image(lam, dtype=torch.float32)).flatten(2)  # (B, K, H·W)
-            target = heat.gather(2, flat.expand(len(heat), -1, -1))[..., 0]
-            rival = heat.scatter(2, flat.expand(len(heat), -1, -1), float("-inf")).amax(2)
-            gap = rival - target  # < 0: the target is the unique maximum
+            target = heat.gather(2, flat)[..., 0]
+            rival = heat.scatter(2, flat, float("-inf")).amax(2)
+            # < 0: the target is the unique maximum; free keypoints count as reached.
+            gap = torch.where(fixed, rival - target, torch.full_like(target, -1.0))
             done = (gap < 0).all(1)
             if done.any():
                 return lam[int(done.nonzero()[0])].detach().double()
@@ -496,6 +548,40 @@ def targeted_witness(
             (logits.grad,) = torch.autograd.grad(torch.relu(gap + 1e-2).sum(), logits)
         optimiser.step()
     return None
+
+
+def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.ndarray]]:
+    """The possible moves of one keypoint that alone take the pose outside Ξ.
+
+    Parameters
+    ----------
+    seed : kpstudy.certify.SeedImage
+    pixels : sequence of K arrays, shape (n_k, 2)
+        Possible heatmap pixels ``(u, v)`` of each keypoint.
+    base : ndarray, shape (K, 2)
+        Heatmap pixels ``(u, v)`` the other keypoints keep (the seed image's argmax).
+    factors : pair
+        :func:`kpstudy.preprocess.scale_factors` of the seed image and the heatmaps.
+    R, t : nominal pose; eps : ndarray, shape (6,), Ξ's half-widths (degrees, metres).
+
+    Returns
+    -------
+    list of (int, ndarray (2,))
+        ``(k, pixel)`` with ``pixel ≠ base[k]`` in keypoint k's region whose pose (every
+        other keypoint at ``base``) lies outside Ξ, farthest outside first (the largest
+        ``max_i error_i / eps_i``).
+    """
+    base = np.asarray(base, dtype=np.float64)
+    moves = [(k, p) for k, region in enumerate(pixels) for p in region if np.any(p != base[k])]
+    if not moves:
+        return []
+    V = np.repeat(base[None], len(moves), 0)
+    for row, (k, p) in enumerate(moves):
+        V[row, k] = p
+    errors = _pose_errors(seed, to_image_pixels(V, factors), R, t)
+    ratio = (errors / eps).max(1)
+    order = [i for i in np.argsort(-ratio, kind="stable") if ratio[i] > 1]
+    return [moves[i] for i in order]
 
 
 def _pose_errors(seed, V, R, t) -> np.ndarray:

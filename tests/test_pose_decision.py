@@ -86,6 +86,25 @@ def test_the_targeted_witness_reaches_joint_combinations_and_only_those():
     assert pb.targeted_witness(model, hull, np.stack([moved[0], peaks[1], moved[2]]), seed) is None
 
 
+def test_a_free_keypoint_and_alternative_targets():
+    peaks = np.array([[10, 10], [20, 20], [30, 30]])
+    moved = peaks + [1, 0]
+    model = _Ramp(peaks, moved, [1 / 3, 1.0, 3.0])
+    hull, seed = _hull(), [torch.zeros(1, dtype=torch.float64)]
+    # Keypoint 0 moved with keypoint 1 at its peak is no image's argmax; keypoint 0 moved
+    # with keypoint 1 free is (b > 0.75).
+    unreachable = np.stack([moved[0], peaks[1], moved[2]])
+    assert pb.targeted_witness(model, hull, unreachable, seed) is None
+    free = unreachable.copy()
+    free[1:] = -1
+    assert pb.targeted_witness(model, hull, free, seed).item() > 0.75
+    # Several targets at once: the first reached is returned.
+    lam = pb.targeted_witness(model, hull, np.stack([unreachable, free]), seed)
+    assert lam is not None and lam.item() > 0.75
+    with pytest.raises(ValueError, match="targets: expected shape"):
+        pb.targeted_witness(model, hull, np.zeros(2, dtype=np.int64), seed)
+
+
 @pytest.fixture(scope="module")
 def scene(P, K):
     """A seed image (exact keypoints), its nominal pose and the rounded heatmap pixels."""
@@ -101,6 +120,7 @@ def _fresh_caches(monkeypatch):
     monkeypatch.setattr(pb, "_CACHE", {})
     monkeypatch.setattr(pb, "_ENUMERATED", {})
     monkeypatch.setattr(pb, "_ERRORS", {})
+    monkeypatch.setattr(pb, "_ATTACKS", {})
 
 
 def _with_regions(monkeypatch, pixels, witnesses=()):
@@ -208,6 +228,40 @@ def test_an_enumerated_combination_outside_the_tolerance_is_sought_in_the_hull(s
     record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, gain))
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_counterexample"][0] > 0.5
+
+
+def test_single_moves_are_the_possible_pixels_that_alone_leave_the_tolerance(scene):
+    seed, R, t, factors, centers = scene
+    eps, _ = _far_tolerance(scene)
+    pixels = _regions_with(centers, [(0, (8, 0)), (0, (1, 0)), (3, (0, 1))])
+    moves = pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, eps)
+    assert [(k, tuple(p)) for k, p in moves] == [(0, tuple(centers[0] + [8, 0]))]
+    wide = np.full(6, 1e6)
+    assert pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide) == []
+
+
+def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image(scene, monkeypatch):
+    seed, R, t, factors, centers = scene
+    eps, _ = _far_tolerance(scene)
+    # Keypoint 0 can go 8 px right (outside Ξ) and keypoint 1 one pixel down; the model moves
+    # keypoint 0 alone, so the farthest combination (if it moves keypoint 1 too) is no image.
+    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0)), (1, (0, 1))]))
+    monkeypatch.setattr(pb, "_first_points", lambda hull, seed: [torch.zeros(1).double()])
+    moved = centers.copy()
+    moved[0] += [8, 0]
+    gain = np.where(np.arange(len(centers)) == 0, 1.0, 0.0)
+    record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, gain))
+    assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
+    assert record["pb_counterexample"][0] > 0.5
+    # Above the enumeration limit the same move is sought.
+    monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)
+    monkeypatch.setattr(pb, "_ATTACKS", {})
+    record = _decide(scene, np.full((6, 46), 1.0), eps, backbone=_Ramp(centers, moved, gain))
+    assert record["pb_status"] == "violated" and record["pb_exact"] is None
+    # A model whose keypoint 0 never moves leaves it open: the attack proves nothing.
+    never = np.zeros(len(centers))
+    record = _decide(scene, np.full((6, 46), 1.0), eps, backbone=_Ramp(centers, moved, never))
+    assert record["pb_status"] == "unknown" and record["pb_rule"] == "linearised"
 
 
 def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
