@@ -1,0 +1,213 @@
+"""kpstudy.tables: every summary column against counts made by hand on small record frames,
+as stored and as read back from CSV."""
+
+import io
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from kpstudy import tables
+
+
+def _record(status, inside, **fields):
+    """One campaign record: of the contrast family at level 5e-4, κ = 1, α = 1 unless
+    ``fields`` say otherwise."""
+    grid = dict(kind="contrast", level=5e-4, image_id=0, kappa=1.0, alpha=1.0)
+    return {**grid, "status": status, "seed_inside": inside, **fields}
+
+
+def _cells():
+    """Two cells (α = 1, α = 2). Ξ at α = 1 is [10°, 10°, 10°, 4, 4, 20 m]."""
+    near = [1.0] * 6  # inside Ξ at α = 1
+    tx5 = [0.0, 0.0, 0.0, 5.0, 0.0, 0.0]  # outside Ξ at α = 1 (tx > 4), inside at α = 2
+    a1 = [
+        # status, inside, λ of the counterexample, dv, time, pb_status, pb_rule, pb_nonlinear
+        ("holds", True, None, [[1, 0], [2, 2]], 1.0, "holds", "enumeration", near),
+        ("violated", True, [0.0, 0.0], [[0, 0], [0, 0]], 3.0, "violated", "witness", None),
+        ("violated", False, [0.5, 0.0], [[1, 1], [1, 1]], 2.0, "holds", "linearised", tx5),
+        ("unknown", True, None, [[3, 0], [0, 0]], 6.0, "holds", "linearised", near),
+        ("holds", False, None, [[0, 1], [0, 0]], 0.0, "unknown", None, near),
+    ]
+    a2 = [
+        ("violated", False, [0.0, 0.0], [[2, 2], [2, 2]], 4.0, "violated", "witness", None),
+        ("holds", True, None, [[2, 2], [2, 2]], 4.0, "unknown", "enumeration", near),
+        ("holds", True, None, [[2, 2], [2, 2]], 4.0, "holds", "linearised", tx5),
+    ]
+    rows = []
+    for alpha, cell in ((1.0, a1), (2.0, a2)):
+        for i, (status, inside, lam, dv, t, pb, rule, nonlinear) in enumerate(cell):
+            rows.append(
+                _record(
+                    status,
+                    inside,
+                    alpha=alpha,
+                    image_id=i,
+                    counterexample=lam,
+                    dv=dv,
+                    time=t,
+                    pb_status=pb,
+                    pb_rule=rule,
+                    pb_time=10.0 * (i + 1),
+                    pb_nonlinear=nonlinear,
+                    argmax_outside=0.01 * i**2,
+                )
+            )
+    # An instance that could not be certified: it counts in `instances` only.
+    rows.append(dict(kind="contrast", level=5e-4, image_id=9, kappa=1.0, alpha=1.0, status="error"))
+    return pd.DataFrame(rows)
+
+
+def _both(records):
+    """The records as stored and as read back from their CSV."""
+    return records, pd.read_csv(io.StringIO(records.to_csv(index=False)))
+
+
+@pytest.mark.parametrize("form", ["stored", "csv"])
+def test_counts_rates_and_times_per_cell(form):
+    records = _both(_cells())[form == "csv"]
+    table = tables.summarise(records, ["alpha"]).set_index("alpha")
+    one, two = table.loc[1.0], table.loc[2.0]
+    # α = 1: 5 certified + 1 error; seeds inside: rows 0, 1, 3.
+    assert (one.instances, one.seeds_inside, one.errors) == (6, 3, 1)
+    assert (one.holds, one.violated, one.unknown) == (2, 2, 1)
+    assert one.violated_at_seed == 1  # row 1 (λ = 0); row 2's λ is not the seed
+    assert one.verified_rate == pytest.approx(1 / 3)  # row 0; row 4 holds outside Ξ
+    assert one.dv_mean == pytest.approx(13 / 20) and one.dv_zero == pytest.approx(11 / 20)
+    assert one.time_mean == pytest.approx(12 / 5)  # 1 + 3 + 2 + 6 + 0, the error left out
+    assert one.time_std == pytest.approx(math.sqrt(21.2 / 5))  # population std
+    assert one.argmax_outside == pytest.approx(0.08)  # over 'holds': rows 0 (0), 4 (0.16)
+    # α = 2: no error; the violated seed's λ read back from CSV text is still λ = 0.
+    assert (two.instances, two.seeds_inside, two.errors) == (3, 2, 0)
+    assert (two.holds, two.violated, two.unknown, two.violated_at_seed) == (2, 1, 0, 1)
+    assert two.verified_rate == 1.0 and two.dv_mean == 2.0 and two.dv_zero == 0.0
+    assert (two.time_mean, two.time_std) == (4.0, 0.0)
+
+
+@pytest.mark.parametrize("form", ["stored", "csv"])
+def test_pose_bound_columns_per_cell(form):
+    records = _both(_cells())[form == "csv"]
+    table = tables.summarise(records, ["alpha"]).set_index("alpha")
+    one, two = table.loc[1.0], table.loc[2.0]
+    assert (one.pb_holds, one.pb_violated, one.pb_unknown) == (3, 1, 1)
+    assert one.pb_verified_rate == pytest.approx(2 / 3)  # rows 0 and 3 of the 3 inside
+    assert one.pb_time_mean == 30.0  # 10 … 50
+    # Row 4 has no pb_rule: an 'unknown' from before the field was decided by 'linearised'.
+    assert (one.pb_by_witness, one.pb_by_enumeration, one.pb_by_linearised) == (1, 1, 3)
+    assert one.pb_enumeration_holds == 1
+    assert one.pb_nonlinear_outside == 1  # row 2: tx = 5 > 4
+    assert (one.pb_only, one.allocation_only) == (1, 0)  # row 3; row 4 is outside Ξ
+    assert (two.pb_holds, two.pb_violated, two.pb_unknown) == (1, 1, 1)
+    assert two.pb_verified_rate == 0.5 and two.pb_time_mean == 20.0
+    assert (two.pb_by_enumeration, two.pb_enumeration_holds) == (1, 0)  # row 1: unknown
+    assert two.pb_nonlinear_outside == 0  # tx = 5 is inside Ξ at α = 2 (8)
+    assert (two.pb_only, two.allocation_only) == (0, 1)  # row 1: holds, pose bound unknown
+
+
+def test_a_cell_without_a_seed_inside_has_no_rate():
+    records = pd.DataFrame(
+        [
+            _record("holds", False, time=1.0, pb_status="holds", pb_time=1.0, pb_nonlinear=[0] * 6),
+            _record("violated", False, time=1.0, pb_status=None, pb_time=None, pb_nonlinear=None),
+        ]
+    )
+    row = tables.summarise(records, ["alpha"]).iloc[0]
+    assert row.seeds_inside == 0 and np.isnan(row.verified_rate)
+    assert np.isnan(row.pb_verified_rate) and row.pb_holds == 1 and row.pb_unknown == 0
+    assert row.pb_time_mean == 1.0  # over the records with a pose bound
+    with pytest.raises(ValueError, match=r"records: .*\['seed_inside'\]"):
+        tables.summarise(records.drop(columns="seed_inside"), ["alpha"])
+
+
+def test_t_global_has_a_row_per_model_reading_and_cell_with_the_papers_numbers():
+    rows = []
+    for model in ("cnn", "cnn_affine"):
+        for units, kappa, status in ((None, 1.0, "holds"), ("heatmap", 1.0, "violated")):
+            rows.append(_record(status, True, model=model, tolerance_units=units, kappa=kappa))
+        rows.append(_record("holds", True, model=model, tolerance_units="paper", kappa=1.5))
+        rows.append(
+            _record("holds", True, model=model, kind="brightness", level=2.0, tolerance_units=None)
+        )
+    rows.append(_record("holds", True, model="cnn", kind="objects", m=2, overlapping=False))
+    records = pd.DataFrame(rows).assign(time=1.0, clipped_fraction=0.1 * np.arange(len(rows)))
+    # A stored level only near the paper's (float text) finds the paper's cell.
+    records.loc[records.kind == "contrast", "level"] = 5e-4 * (1 + 1e-9)
+    table = tables.t_global(records)
+    keys = list(zip(table.model, table.tolerance_units, table.kind, table.kappa))
+    assert keys == [  # sorted; the record before the reading field counts as 'heatmap'
+        ("cnn", "heatmap", "brightness", 1.0),
+        ("cnn", "heatmap", "contrast", 1.0),
+        ("cnn", "paper", "contrast", 1.5),
+        ("cnn_affine", "heatmap", "brightness", 1.0),
+        ("cnn_affine", "heatmap", "contrast", 1.0),
+        ("cnn_affine", "paper", "contrast", 1.5),
+    ]
+    assert list(table.instances) == [1, 2, 1, 1, 2, 1]  # the objects record is not global
+    assert list(table.holds) == [1, 1, 1, 1, 1, 1] and list(table.verified_rate[1:3]) == [0.5, 1]
+    assert list(table.paper_rate[:3]) == [0.560, 0.570, 0.173]  # (kind, level, κ, α = 1)
+    assert list(table.paper_time_mean[:3]) == [223.4, 79.7, 133.9]
+    assert list(table.paper_time_std[:3]) == [301.9, 105.5, 95.5]
+    # Mean over the cell's records (0.1 × their row): cnn's are rows 0–3, cnn_affine's 4–7.
+    np.testing.assert_allclose(table.clipped_fraction, [0.3, 0.05, 0.2, 0.7, 0.45, 0.6])
+
+
+def test_t_local_and_t_resnet_take_their_kinds_and_paper_cells():
+    rows = [
+        _record("holds", True, kind="objects", m=2, overlapping=False),
+        _record("unknown", True, kind="objects", m=2, overlapping=False),
+        _record("holds", True, kind="objects", m=5, overlapping=True),  # no paper cell
+        _record("holds", True, kind="blocks", overlapping=True, alpha=1.5),
+        _record("violated", True, kind="blocks", overlapping=False, alpha=1.5),
+        _record("holds", True, kind="blocks", overlapping=False, alpha=1.5),
+        _record("holds", True),  # contrast: in neither
+    ]
+    records = pd.DataFrame(rows).assign(time=2.0)
+    local = tables.t_local(records)
+    assert list(zip(local.m, local.overlapping)) == [(2, False), (5, True)]
+    assert list(local.instances) == [2, 1] and list(local.verified_rate) == [0.5, 1.0]
+    assert (local.paper_rate[0], local.paper_time_mean[0], local.paper_time_std[0]) == (
+        0.550,
+        38.3,
+        56.7,
+    )
+    assert local.paper_rate.isna().tolist() == [False, True]
+    resnet = tables.t_resnet(records)
+    assert list(resnet.overlapping) == [False, True] and list(resnet.instances) == [2, 1]
+    assert list(resnet.verified_rate) == [0.5, 1.0] and list(resnet.time_mean) == [2.0, 2.0]
+    assert list(resnet.paper_rate) == [0.935, 0.940]
+    assert list(resnet.paper_time_mean) == [314.4, 1571.7]
+    with pytest.raises(ValueError, match="'kind'"):
+        tables.t_local(records.drop(columns="kind"))
+
+
+def test_t_prob_puts_the_papers_soundness_and_completeness_beside_ours():
+    ours = pd.DataFrame(dict(kappa=[1.0, 2.0, 3.0], alpha=[1.0, 0.5, 1.0], soundness=[1, 1, 1]))
+    out = tables.t_prob(ours)
+    assert list(out.paper_soundness[:2]) == [0.998978, 1.0] and np.isnan(out.paper_soundness[2])
+    assert list(out.paper_completeness[:2]) == [3.07e-5, 0.0]
+    assert list(out.soundness) == [1, 1, 1] and "paper_soundness" not in ours
+
+
+@pytest.mark.parametrize("form", ["stored", "csv"])
+def test_pose_bound_ratios_one_row_per_hull(form):
+    """The bound depends on the hull only: one row per hull whatever its α and κ, divided
+    by Ξ at α = 1; a record without a bound (its seed refuted it) is left out."""
+    bound = [5.0, 10.0, 20.0, 2.0, 4.0, 10.0]
+    rows = [
+        _record("holds", True, image_id=0, alpha=1.0, pb_bound=bound),
+        _record("holds", True, image_id=0, alpha=2.0, pb_bound=bound),
+        _record("holds", True, image_id=0, kind="brightness", level=2.0, pb_bound=[1.0] * 6),
+        _record("violated", True, image_id=1, pb_bound=None),
+    ]
+    records = _both(pd.DataFrame(rows))[form == "csv"]
+    ratios = tables.pose_bound_ratios(records)
+    assert list(ratios.columns) == ["kind", "image_id", "level", *tables.POSE_AXES]
+    assert list(ratios.kind) == ["contrast", "brightness"]
+    np.testing.assert_allclose(ratios.loc[0, list(tables.POSE_AXES)], [0.5, 1, 2, 0.5, 1, 0.5])
+    np.testing.assert_allclose(
+        ratios.loc[1, list(tables.POSE_AXES)], [0.1, 0.1, 0.1, 0.25, 0.25, 0.05]
+    )
+    assert tables.pose_bound_ratios(records, "pb_exact").empty  # none enumerated
+    with pytest.raises(ValueError, match="^column"):
+        tables.pose_bound_ratios(records, "pb_nonlinear")
