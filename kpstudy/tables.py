@@ -16,11 +16,15 @@ its axes and reports, per cell:
 * ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
   coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
+  ``time_holds_mean`` and ``time_violated_mean``: over its proofs (``holds``) and its
+  refutations (``violated``) only (NaN without any), so that proofs compare with
+  proofs;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_verified_rate`` (same
-  denominator), ``pb_time_mean``; ``pb_by_witness``, ``pb_by_enumeration``,
+  denominator), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``
+  as above); ``pb_by_witness``, ``pb_by_enumeration``,
   ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before
   it was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
   otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those
@@ -170,6 +174,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["dv_zero"] = float(np.mean(dv == 0))
         row["time_mean"] = float(cell["time"].mean())
         row["time_std"] = float(cell["time"].std(ddof=0))
+        row["time_holds_mean"] = _mean(cell["time"][holds])
+        row["time_violated_mean"] = _mean(cell["time"][cell["status"] == "violated"])
         if "pb_status" in cell and cell["pb_status"].notna().any():
             pb = cell["pb_status"] == "holds"
             row["pb_holds"] = int(pb.sum())
@@ -179,6 +185,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
                 float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
             )
             row["pb_time_mean"] = float(cell["pb_time"].mean())
+            row["pb_time_holds_mean"] = _mean(cell["pb_time"][pb])
+            row["pb_time_violated_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "violated"])
             rules = _pb_rules(cell)
             row.update({f"pb_by_{r}": int((rules == r).sum()) for r in _PB_RULES})
             row["pb_enumeration_holds"] = int((pb & (rules == "enumeration")).sum())
@@ -205,6 +213,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "dv_zero",
         "time_mean",
         "time_std",
+        "time_holds_mean",
+        "time_violated_mean",
     ]
     if "pb_status" in records:
         columns += [
@@ -213,6 +223,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_unknown",
             "pb_verified_rate",
             "pb_time_mean",
+            "pb_time_holds_mean",
+            "pb_time_violated_mean",
             *(f"pb_by_{r}" for r in _PB_RULES),
             "pb_enumeration_holds",
             "pb_nonlinear_outside",
@@ -222,6 +234,12 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     if "argmax_outside" in records:
         columns.append("argmax_outside")
     return pd.DataFrame(rows, columns=columns)
+
+
+def _mean(values: pd.Series) -> float:
+    """The mean of ``values`` in seconds, NaN when there are none."""
+    values = pd.to_numeric(values, errors="coerce").dropna()
+    return float(values.mean()) if len(values) else float("nan")
 
 
 def _list(value) -> list:

@@ -1,0 +1,440 @@
+"""The paper beside ours, one verification table at a time (T-local, T-global, T-resnet):
+every method's verified rate and time per instance in one figure, and a compact table.
+
+A *method* is one way the study decides an instance, read from the columns of a
+:mod:`kpstudy.tables` table:
+
+* ``alloc (heatmap)`` / ``alloc (paper)``: the allocation method (the paper's) under each
+  tolerance reading (``tolerance_units``; plain ``alloc`` for tables without the column):
+  ``verified_rate``, ``holds`` / ``violated`` / ``unknown``, ``time_*``;
+* ``pb``: the pose-bound method (:mod:`kpstudy.pose_bound`), on the rows that have its
+  columns (``pb_*``). Its time is one region search per hull, counted in full in each
+  (κ, α) cell of the hull.
+
+:func:`method_cells` turns a table into one row per model, method and cell (the data of
+the figure, which a test can check); :func:`plot_comparison` draws it and
+:func:`compact_table` condenses it to one row per model and method. Times compare like
+with like: our mean time over proofs (``holds``) beside the paper's time per instance,
+our refutations (``violated``, often a counterexample found in a fraction of a second)
+apart; tables from before that split show the mean over all instances instead. A cell
+without data (no such record, or no seed inside Ξ for a rate) is hatched, never drawn as 0.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pandas as pd
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+__all__ = [
+    "CONDITIONS",
+    "GRID_COLUMNS",
+    "PAPER_HARDWARE",
+    "compact_table",
+    "method_cells",
+    "plot_comparison",
+    "save_comparison",
+]
+
+#: Table columns that name a row of a rate grid, in this order when present.
+CONDITIONS = ("kind", "level", "m", "overlapping")
+#: Table columns that name a column of a rate grid.
+GRID_COLUMNS = ("kappa", "alpha")
+#: The paper's hardware (ModelVerification.jl, paper §8).
+PAPER_HARDWARE = "RTX A4000"
+#: Columns of :func:`method_cells` besides the cell's own.
+CELL_COLUMNS = (
+    "instances",
+    "seeds_inside",
+    "holds",
+    "violated",
+    "unknown",
+    "rate",
+    "time_all",
+    "time_proof",
+    "time_refute",
+    "paper_rate",
+    "paper_time_mean",
+    "paper_time_std",
+)
+_PAPER = ("paper_rate", "paper_time_mean", "paper_time_std")
+#: method → table columns for (holds, violated, unknown, rate, time_all, time_proof,
+#: time_refute)
+_ALLOC = ("holds", "violated", "unknown", "verified_rate", "time_mean", "time_holds_mean",
+          "time_violated_mean")  # fmt: skip
+_PB = ("pb_holds", "pb_violated", "pb_unknown", "pb_verified_rate", "pb_time_mean",
+       "pb_time_holds_mean", "pb_time_violated_mean")  # fmt: skip
+_NEEDED = ("kappa", "alpha", "instances", "seeds_inside", "verified_rate", *_PAPER)
+
+
+def method_cells(table: pd.DataFrame) -> pd.DataFrame:
+    """One row per model, method and cell of a T-local / T-global / T-resnet table.
+
+    Parameters
+    ----------
+    table : DataFrame
+        :func:`kpstudy.tables.t_local` (``t_global``, ``t_resnet``) output, as returned or
+        read back from its CSV; columns a table of an older version lacks (``model``,
+        ``tolerance_units``, ``pb_*``, ``time_holds_mean`` …) are taken as absent.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``model`` (``''`` without one), ``method`` (``'alloc (heatmap)'``,
+        ``'alloc (paper)'``, ``'alloc'``, ``'pb'``), the cell's :data:`CONDITIONS` present,
+        ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts, ``rate`` (holds among seeds
+        inside Ξ ÷ those seeds; NaN without any), times in seconds per instance
+        (``time_all`` over all instances, ``time_proof`` over ``holds``, ``time_refute``
+        over ``violated``; NaN where there are none or the table has no such column), and
+        the paper's rate and time (NaN where the paper has no cell).
+    """
+    if not isinstance(table, pd.DataFrame):
+        raise ValueError(f"table: expected a pandas DataFrame, got {type(table).__name__}")
+    missing = [c for c in _NEEDED if c not in table]
+    if missing:
+        raise ValueError(f"table: expected a verification table with columns {missing}")
+    conditions = [c for c in CONDITIONS if c in table]
+    model = table["model"].astype(str) if "model" in table else pd.Series("", table.index)
+    if "tolerance_units" in table:
+        units = table["tolerance_units"].fillna("heatmap").astype(str)
+        alloc_names = "alloc (" + units + ")"
+    else:
+        alloc_names = pd.Series("alloc", table.index)
+    frames = [_method_frame(table, model, alloc_names, _ALLOC, conditions)]
+    if "pb_holds" in table:
+        rows = table["pb_holds"].notna()
+        if rows.any():
+            names = pd.Series("pb", table.index)
+            frames.append(_method_frame(table[rows], model[rows], names[rows], _PB, conditions))
+    out = pd.concat(frames, ignore_index=True)
+    order = {m: i for i, m in enumerate(_method_order(out["method"]))}
+    out = out.sort_values(
+        ["model", "method", *conditions, *GRID_COLUMNS],
+        key=lambda s: s.map(order) if s.name == "method" else s,
+        kind="stable",
+    )
+    return out.reset_index(drop=True)
+
+
+def _method_frame(table, model, names, columns, conditions) -> pd.DataFrame:
+    holds, violated, unknown, rate, time_all, proof, refute = (_numeric(table, c) for c in columns)
+    data = {"model": model.to_numpy(), "method": names.to_numpy()}
+    for c in (*conditions, *GRID_COLUMNS):
+        data[c] = table[c].to_numpy()
+    data.update(
+        instances=_numeric(table, "instances"),
+        seeds_inside=_numeric(table, "seeds_inside"),
+        holds=holds,
+        violated=violated,
+        unknown=unknown,
+        rate=rate,
+        time_all=time_all,
+        time_proof=proof,
+        time_refute=refute,
+        **{c: _numeric(table, c) for c in _PAPER},
+    )
+    return pd.DataFrame(data)
+
+
+def _numeric(table: pd.DataFrame, column: str) -> np.ndarray:
+    """``table[column]`` as float64, NaN where absent or not a number."""
+    if column not in table:
+        return np.full(len(table), np.nan)
+    return pd.to_numeric(table[column], errors="coerce").to_numpy(np.float64)
+
+
+def _method_order(methods: pd.Series) -> list[str]:
+    """Allocation readings first ('heatmap' before 'paper'), then the pose-bound method."""
+    rank = {"alloc (heatmap)": 0, "alloc": 0, "alloc (paper)": 1, "pb": 9}
+    return sorted(methods.unique(), key=lambda m: (rank.get(m, 5), m))
+
+
+def compact_table(table: pd.DataFrame) -> pd.DataFrame:
+    """The numbers a reader compares, one row per model and method (paper §8.4 layout).
+
+    Returns
+    -------
+    DataFrame
+        ``model``, ``method``, ``instances``, ``holds``, ``violated``, ``unknown`` (counts
+        over the table), ``cells`` (cells where ours and the paper's rate both exist),
+        ``rate`` and ``paper_rate`` (mean over those cells), ``delta`` (``rate −
+        paper_rate``), ``proof_s`` (mean seconds over our ``holds``), ``refutation_s``
+        (over our ``violated``), ``paper_s`` (the paper's mean time per instance over the
+        same cells).
+    """
+    cells = method_cells(table)
+    rows = []
+    for (model, method), part in cells.groupby(["model", "method"], sort=False):
+        both = part.dropna(subset=["rate", "paper_rate"])
+        rows.append(
+            dict(
+                model=model,
+                method=method,
+                instances=int(part["instances"].sum()),
+                holds=_count(part["holds"]),
+                violated=_count(part["violated"]),
+                unknown=_count(part["unknown"]),
+                cells=len(both),
+                rate=float(both["rate"].mean()) if len(both) else np.nan,
+                paper_rate=float(both["paper_rate"].mean()) if len(both) else np.nan,
+                delta=float((both["rate"] - both["paper_rate"]).mean()) if len(both) else np.nan,
+                proof_s=_weighted(part["time_proof"], part["holds"]),
+                refutation_s=_weighted(part["time_refute"], part["violated"]),
+                paper_s=float(both["paper_time_mean"].mean()) if len(both) else np.nan,
+            )
+        )
+    return pd.DataFrame(rows)
+
+
+def _count(values: pd.Series):
+    """The sum of counts, or None where the table has none (an old table's column)."""
+    return None if values.isna().all() else int(values.sum())
+
+
+def _weighted(times: pd.Series, counts: pd.Series) -> float:
+    """Pooled mean of per-cell means ``times`` over ``counts`` instances each."""
+    ok = times.notna() & counts.notna() & (counts > 0)
+    if not ok.any():
+        return float("nan")
+    return float((times[ok] * counts[ok]).sum() / counts[ok].sum())
+
+
+def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None) -> Figure:
+    """Every method's verified rate and time per instance beside the paper's.
+
+    Parameters
+    ----------
+    table : DataFrame
+        A T-local / T-global / T-resnet table (see :func:`method_cells`).
+    title : str
+        The figure's title, e.g. ``"T-global: brightness and contrast"``.
+    hardware : str, optional
+        Where our times were measured, for the time panels' titles; default this
+        machine's CPU count (``"2 CPU cores"``), right when the figure is drawn where the
+        campaign ran.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Per model, a row of rate grids: one per method and the paper's, rows the cell's
+        :data:`CONDITIONS` and columns (κ, α), one colour scale (0–1) for all; each of our
+        cells reads our rate, the paper's and the difference, hatched where there is no
+        rate. Below, per model, the time per instance on a log scale, cell by cell: per
+        method the mean over proofs (filled) and over refutations (hollow), and the
+        paper's mean ± std (black).
+    """
+    if not isinstance(title, str):
+        raise ValueError(f"title: expected a string, got {type(title).__name__}")
+    cells = method_cells(table)
+    if cells.empty:
+        raise ValueError("table: expected at least one row")
+    hardware = hardware or f"{os.cpu_count()} CPU cores"
+    conditions = [c for c in CONDITIONS if c in cells]
+    rows = _keys(cells, conditions)
+    cols = _keys(cells, list(GRID_COLUMNS))
+    models = list(dict.fromkeys(cells["model"]))
+    methods = _method_order(cells["method"])
+    n_panels = len(methods) + 1
+    panel_w = max(2.4, 0.7 * len(cols) + 0.9)
+    panel_h = max(1.6, 0.5 * len(rows) + 0.9)
+    fig = Figure(
+        figsize=(max(9.0, panel_w * n_panels + 1.5), len(models) * (panel_h + 3.6) + 1.0),
+        layout="constrained",
+    )
+    grid = fig.add_gridspec(2 * len(models), n_panels, height_ratios=[panel_h, 3.0] * len(models))
+    norm = Normalize(0.0, 1.0)
+    image, legend = None, {}
+    for i, model in enumerate(models):
+        part = cells[cells["model"] == model]
+        rate_axes = [fig.add_subplot(grid[2 * i, j]) for j in range(n_panels)]
+        for j, method in enumerate(methods):
+            mine = part[part["method"] == method]
+            image = _rate_grid(rate_axes[j], mine, conditions, rows, cols, norm, ours=True)
+            name = f"{model}: {method}" if model else method
+            rate_axes[j].set_title(f"{name}\n{_counts(mine)}", fontsize="small")
+        _rate_grid(rate_axes[-1], part, conditions, rows, cols, norm, ours=False)
+        rate_axes[-1].set_title(f"paper ({PAPER_HARDWARE})\nverified rate", fontsize="small")
+        for ax in rate_axes[1:]:
+            ax.set_yticklabels([])
+        time_ax = fig.add_subplot(grid[2 * i + 1, :])
+        _time_panel(time_ax, part, conditions, rows, cols, methods)
+        time_ax.set_title(
+            f"{(model + ': ') if model else ''}time per instance, log scale (ours: {hardware}; "
+            f"paper: {PAPER_HARDWARE}); proofs beside the paper, refutations apart",
+            fontsize="small",
+        )
+        legend.update(zip(*reversed(time_ax.get_legend_handles_labels())))
+    fig.legend(list(legend.values()), list(legend), loc="outside lower center", ncol=4, fontsize=7)
+    if image is not None:
+        fig.colorbar(image, ax=fig.axes[:n_panels], shrink=0.8, label="verified rate")
+    fig.suptitle(
+        f"{title}: verified rate (holds among seeds inside Ξ) and time, ours beside the paper's"
+    )
+    return fig
+
+
+def _keys(cells: pd.DataFrame, columns: list[str]) -> list[tuple]:
+    """The distinct values of ``columns`` in ``cells``, sorted."""
+    if not columns:
+        return [()]
+    return sorted(set(cells[columns].itertuples(index=False, name=None)))
+
+
+def _lookup(part: pd.DataFrame, conditions, rows, cols, column: str) -> np.ndarray:
+    """``part[column]`` on the grid ``(len(rows), len(cols))``, NaN where no cell."""
+    grid = np.full((len(rows), len(cols)), np.nan)
+    index_r = {k: n for n, k in enumerate(rows)}
+    index_c = {k: n for n, k in enumerate(cols)}
+    keys_r = part[conditions].itertuples(index=False, name=None) if conditions else [()] * len(part)
+    keys_c = part[list(GRID_COLUMNS)].itertuples(index=False, name=None)
+    for kr, kc, value in zip(keys_r, keys_c, part[column]):
+        grid[index_r[tuple(kr)], index_c[tuple(kc)]] = value
+    return grid
+
+
+def _rate_grid(ax, part, conditions, rows, cols, norm, ours: bool):
+    """One rate grid: ours (annotated with the paper's rate and the difference) or the
+    paper's; NaN cells hatched. Returns the image (for the colour bar)."""
+    paper = _lookup(part, conditions, rows, cols, "paper_rate")
+    values = _lookup(part, conditions, rows, cols, "rate") if ours else paper
+    image = ax.imshow(
+        np.ma.masked_invalid(values), cmap="viridis", norm=norm, aspect="auto", zorder=1
+    )
+    ax.add_patch(
+        Rectangle(
+            (-0.5, -0.5), len(cols), len(rows), hatch="///", fill=False, ec="0.75", lw=0, zorder=0
+        )
+    )
+    seeds = _lookup(part, conditions, rows, cols, "seeds_inside") if ours else None
+    present = _lookup(part, conditions, rows, cols, "instances") if ours else None
+    for r in range(len(rows)):
+        for c in range(len(cols)):
+            text, value = _cell_text(values[r, c], paper[r, c], ours, seeds, present, r, c)
+            light = np.isfinite(value) and value > 0.55
+            ax.text(
+                c, r, text, ha="center", va="center", fontsize=6.5, zorder=2,
+                color="k" if light or not np.isfinite(value) else "w",
+            )  # fmt: skip
+    ax.set_xticks(range(len(cols)), [f"κ={k:g}\nα={a:g}" for k, a in cols], fontsize=7)
+    ax.set_yticks(range(len(rows)), [_row_label(conditions, k) for k in rows], fontsize=7)
+    ax.set_xlim(-0.5, len(cols) - 0.5)
+    ax.set_ylim(len(rows) - 0.5, -0.5)
+    return image
+
+
+def _cell_text(value, paper, ours, seeds, present, r, c) -> tuple[str, float]:
+    if not ours:
+        return (f"{paper:.0%}" if np.isfinite(paper) else "no cell"), paper
+    if not np.isfinite(present[r, c]):
+        return "no data", value
+    if not np.isfinite(value):
+        return "no seed\nin Ξ", value
+    paper_text = f"paper {paper:.0%}" if np.isfinite(paper) else "paper –"
+    delta = f"Δ {100 * (value - paper):+.0f} pp" if np.isfinite(paper) else ""
+    return "\n".join(t for t in (f"ours {value:.0%}", paper_text, delta) if t), value
+
+
+def _row_label(conditions, key) -> str:
+    names = {"kind": "", "level": "", "m": "m=", "overlapping": ""}
+    parts = []
+    for c, v in zip(conditions, key):
+        if c == "overlapping":
+            parts.append("overlapping" if bool(v) else "apart")
+        elif c == "level":
+            parts.append(f"{v:g}")
+        else:
+            parts.append(f"{names[c]}{v:g}" if not isinstance(v, str) else str(v))
+    return " ".join(parts) or "all"
+
+
+def _counts(part: pd.DataFrame) -> str:
+    """``holds / violated / unknown`` of a method's cells (``?`` where not stored)."""
+    return "holds/violated/unknown " + "/".join(
+        "?" if part[c].isna().all() else str(int(part[c].sum()))
+        for c in ("holds", "violated", "unknown")
+    )
+
+
+def _time_panel(ax, part, conditions, rows, cols, methods):
+    """Time per instance cell by cell (log scale): proofs filled, refutations hollow, the
+    paper's mean ± std in black; a table without the split shows the mean over all."""
+    keys = [(r, c) for r in rows for c in cols]
+    present = [
+        (r, c) for r, c in keys if not part[_mask(part, conditions, r, c)]["instances"].isna().all()
+    ]
+    x = np.arange(len(present))
+    width = 0.8 / (len(methods) + 1)
+    drawn = []
+    for j, method in enumerate(methods):
+        mine = part[part["method"] == method]
+        color = f"C{j}"
+        shift = -0.4 + width * (j + 0.5)
+        proof = np.array([_value(mine, conditions, r, c, "time_proof") for r, c in present])
+        refute = np.array([_value(mine, conditions, r, c, "time_refute") for r, c in present])
+        split = mine["time_proof"].notna().any() or mine["time_refute"].notna().any()
+        if split:
+            ax.scatter(x + shift, proof, marker="o", color=color, s=22, zorder=3,
+                       label=f"{method}: proofs (holds)")  # fmt: skip
+            ax.scatter(x + shift, refute, marker="v", facecolors="none", edgecolors=color,
+                       s=26, zorder=3, label=f"{method}: refutations (violated)")  # fmt: skip
+            drawn += [proof, refute]
+        else:  # a table from before the split: all instances together
+            every = np.array([_value(mine, conditions, r, c, "time_all") for r, c in present])
+            ax.scatter(x + shift, every, marker="s", color=color, s=18, zorder=3,
+                       label=f"{method}: all instances (table without the split)")  # fmt: skip
+            drawn.append(every)
+    mean = np.array([_value(part, conditions, r, c, "paper_time_mean") for r, c in present])
+    std = np.array([_value(part, conditions, r, c, "paper_time_std") for r, c in present])
+    drawn.append(mean + np.nan_to_num(std))
+    finite = np.concatenate([d[np.isfinite(d) & (d > 0)] for d in drawn] + [np.array([1.0])])
+    low = 10 ** np.floor(np.log10(finite.min() / 2))
+    high = 10 ** np.ceil(np.log10(finite.max() * 2))
+    shift = -0.4 + width * (len(methods) + 0.5)
+    ok = np.isfinite(mean)
+    lower = np.clip(mean - np.nan_to_num(std), low, None)
+    ax.errorbar(
+        x[ok] + shift, mean[ok], yerr=[mean[ok] - lower[ok], np.nan_to_num(std)[ok]],
+        fmt="D", color="k", ms=4, capsize=2, lw=1, zorder=3,
+        label=f"paper ({PAPER_HARDWARE}): mean ± std, all instances",
+    )  # fmt: skip
+    ax.set_yscale("log")
+    ax.set_ylim(low, high)
+    ax.set_ylabel("seconds per instance")
+    labels = [
+        f"{_row_label(conditions, r)} κ={c[0]:g} α={c[1]:g}" if conditions else
+        f"κ={c[0]:g} α={c[1]:g}"
+        for r, c in present
+    ]  # fmt: skip
+    ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=6.5)
+    ax.set_xlim(-0.6, max(len(present), 1) - 0.4)
+    ax.grid(axis="y", which="major", alpha=0.3)
+
+
+def _mask(part, conditions, row, col) -> np.ndarray:
+    mask = np.ones(len(part), bool)
+    for c, v in zip((*conditions, *GRID_COLUMNS), (*row, *col)):
+        mask &= (part[c] == v).to_numpy()
+    return mask
+
+
+def _value(part, conditions, row, col, column) -> float:
+    values = part.loc[_mask(part, conditions, row, col), column].dropna()
+    return float(values.iloc[0]) if len(values) else np.nan
+
+
+def save_comparison(table_csv, png, title: str | None = None, hardware: str | None = None):
+    """Draw :func:`plot_comparison` of the table ``table_csv`` (a ``tables/*.csv`` of a
+    results folder) to ``png``; ``title`` defaults to the file's stem. Returns the path."""
+    from pathlib import Path
+
+    from kpstudy.io import save_figure
+
+    table_csv = Path(table_csv)
+    if not table_csv.is_file():
+        raise ValueError(f"table_csv: expected a table's CSV file, got {str(table_csv)!r}")
+    fig = plot_comparison(pd.read_csv(table_csv), title or table_csv.stem, hardware)
+    return save_figure(fig, png)

@@ -1,0 +1,184 @@
+"""kpstudy.comparison: every method's rate and time beside the paper's, from stored tables."""
+
+import io
+import itertools
+
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.figure import Figure
+
+from kpstudy import comparison, tables
+
+
+def local_records(pose_bound: bool = True) -> pd.DataFrame:
+    """T-local records of two models under two readings, the pose-bound method on the
+    'heatmap' reading; m = 2 only, 2 seeds per cell. Statuses depend on the cell so that
+    the rates differ: the 'paper' reading holds everywhere; 'heatmap' holds only at
+    α = 1.5, refuting at the seed (λ = 0) elsewhere; pb holds unless overlapping."""
+    rows = []
+    grid = itertools.product(
+        ("cnn", "cnn_affine"), ("heatmap", "paper"), (False, True), (1.0, 1.5), (1.0, 1.5)
+    )
+    for model, units, overlapping, kappa, alpha in grid:
+        for seed in range(2):
+            holds = units == "paper" or alpha == 1.5
+            row = dict(
+                model=model,
+                tolerance_units=units,
+                kind="objects",
+                m=2,
+                overlapping=overlapping,
+                image_id=seed,
+                kappa=kappa,
+                alpha=alpha,
+                status="holds" if holds else "violated",
+                time=30.0 if holds else 0.1,
+                seed_inside=True,
+                counterexample=None if holds else [0.0, 0.0, 0.0],
+                dv=[[1, 0]] * 23,
+            )
+            if pose_bound and units == "heatmap":
+                row.update(
+                    pb_status="unknown" if overlapping else "holds",
+                    pb_time=200.0 if overlapping else 50.0,
+                    pb_bound=[1.0] * 6,
+                    pb_nonlinear=[1.0] * 6,
+                )
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+@pytest.fixture(scope="module")
+def table():
+    return tables.t_local(local_records())
+
+
+def test_tables_split_times_by_status(table):
+    row = table[(table.tolerance_units == "heatmap") & (table.alpha == 1.0)].iloc[0]
+    assert (row.holds, row.violated) == (0, 2)
+    assert np.isnan(row.time_holds_mean) and row.time_violated_mean == pytest.approx(0.1)
+    assert row.pb_violated == 0 and row.pb_unknown + row.pb_holds == 2
+    row = table[(table.tolerance_units == "heatmap") & (table.alpha == 1.5)].iloc[0]
+    assert row.time_holds_mean == pytest.approx(30.0) and np.isnan(row.time_violated_mean)
+
+
+def test_method_cells_has_every_method(table):
+    cells = comparison.method_cells(table)
+    methods = cells.groupby("model")["method"].unique()
+    for model in ("cnn", "cnn_affine"):
+        assert list(methods[model]) == ["alloc (heatmap)", "alloc (paper)", "pb"]
+    pb = cells[(cells.method == "pb") & (cells.model == "cnn")]
+    assert len(pb) == 8  # 2 overlap classes × 2 κ × 2 α
+    assert pb[pb.overlapping].rate.eq(0.0).all() and pb[~pb.overlapping].rate.eq(1.0).all()
+    assert pb[~pb.overlapping].time_proof.eq(50.0).all()
+    assert pb[pb.overlapping].time_proof.isna().all()  # no proof: no proof time, not 0
+    paper = tables.PAPER_T_LOCAL[(2, True, 1.5, 1.0)]
+    cell = cells[(cells.method == "alloc (paper)") & cells.overlapping & (cells.kappa == 1.5)]
+    assert cell[cell.alpha == 1.0].paper_rate.iloc[0] == paper[2]
+
+
+def test_compact_table_counts_rates_and_times(table):
+    compact = comparison.compact_table(table)
+    assert list(compact.columns) == [
+        "model", "method", "instances", "holds", "violated", "unknown", "cells", "rate",
+        "paper_rate", "delta", "proof_s", "refutation_s", "paper_s",
+    ]  # fmt: skip
+    assert len(compact) == 6
+    row = compact.set_index(["model", "method"]).loc[("cnn", "alloc (heatmap)")]
+    assert (row.holds, row.violated, row.unknown, row.cells) == (8, 8, 0, 8)
+    assert row.rate == pytest.approx(0.5) and row.proof_s == pytest.approx(30.0)
+    assert row.refutation_s == pytest.approx(0.1)
+    paper = [v[2] for k, v in tables.PAPER_T_LOCAL.items() if k[0] == 2]
+    assert row.paper_rate == pytest.approx(np.mean(paper))
+    assert row.delta == pytest.approx(0.5 - np.mean(paper))
+    pb = compact.set_index(["model", "method"]).loc[("cnn", "pb")]
+    assert (pb.holds, pb.unknown, pb.proof_s) == (8, 8, 50.0) and np.isnan(pb.refutation_s)
+
+
+def _texts(ax) -> list[str]:
+    return [t.get_text() for t in ax.texts]
+
+
+def test_figure_shows_every_method_beside_the_paper(table):
+    fig = comparison.plot_comparison(table, "T-local", hardware="2 CPU cores")
+    assert isinstance(fig, Figure)
+    titles = [ax.get_title() for ax in fig.axes]
+    for model in ("cnn", "cnn_affine"):
+        for method in ("alloc (heatmap)", "alloc (paper)", "pb"):
+            assert any(t.startswith(f"{model}: {method}\n") for t in titles), (model, method)
+    assert sum(t.startswith("paper (RTX A4000)") for t in titles) == 2
+    time_axes = [ax for ax in fig.axes if ax.get_yscale() == "log"]
+    assert len(time_axes) == 2
+    assert all("ours: 2 CPU cores" in ax.get_title() and "RTX A4000" in ax.get_title()
+               for ax in time_axes)  # fmt: skip
+    # Our cell at (apart, κ = 1, α = 1) under the 'heatmap' reading: 0 % against 55 %.
+    heat = next(ax for ax in fig.axes if ax.get_title().startswith("cnn: alloc (heatmap)"))
+    assert "ours 0%\npaper 55%\nΔ -55 pp" in _texts(heat)
+    assert heat.get_yticklabels()[0].get_text() == "m=2 apart"
+    assert [t.get_text() for t in heat.get_xticklabels()][:2] == ["κ=1\nα=1", "κ=1\nα=1.5"]
+    # The same colour scale in every grid.
+    limits = {im.get_clim() for ax in fig.axes for im in ax.images}
+    assert limits == {(0.0, 1.0)}
+    labels = time_axes[0].get_legend_handles_labels()[1]
+    assert "pb: proofs (holds)" in labels and "alloc (heatmap): refutations (violated)" in labels
+    assert any(label.startswith("paper (RTX A4000)") for label in labels)
+    # Proof times on the axis: 30 s for the allocation's holds, 50 s for pb.
+    offsets = np.concatenate([c.get_offsets()[:, 1] for c in time_axes[0].collections
+                              if len(c.get_offsets())])  # fmt: skip
+    assert {30.0, 50.0, 0.1} <= set(np.round(offsets.compressed(), 6))
+
+
+def test_missing_cells_are_hatched_not_zero():
+    records = local_records()
+    # No seed of (overlapping, κ = 1.5, α = 1.5) inside Ξ; no paper cell for m = 5.
+    hit = records.overlapping & (records.kappa == 1.5) & (records.alpha == 1.5)
+    records.loc[hit, "seed_inside"] = False
+    extra = records[records.m == 2].head(1).assign(m=5)
+    table = tables.t_local(pd.concat([records, extra], ignore_index=True))
+    fig = comparison.plot_comparison(table, "T-local")
+    heat = next(ax for ax in fig.axes if ax.get_title().startswith("cnn: alloc (heatmap)"))
+    texts = _texts(heat)
+    assert "no seed\nin Ξ" in texts and "no data" in texts
+    assert any(t.endswith("paper –") for t in texts)
+    (image,) = heat.images
+    values = image.get_array()
+    assert values.mask.sum() == texts.count("no data") + texts.count("no seed\nin Ξ")
+    assert any(p.get_hatch() == "///" for p in heat.patches)
+    paper = next(ax for ax in fig.axes if ax.get_title().startswith("paper"))
+    assert "no cell" in _texts(paper)
+
+
+def test_old_tables_still_render():
+    """A table from before the readings, the pose-bound method and the time split, as
+    read back from its CSV: one method, times over all instances."""
+    records = local_records(pose_bound=False).drop(columns=["model", "tolerance_units"])
+    table = tables.t_local(records)
+    old = table.drop(columns=["time_holds_mean", "time_violated_mean"])
+    old = pd.read_csv(io.StringIO(old.to_csv(index=False)))
+    cells = comparison.method_cells(old)
+    assert list(cells.method.unique()) == ["alloc"] and (cells.model == "").all()
+    fig = comparison.plot_comparison(old, "old")
+    (time_ax,) = [ax for ax in fig.axes if ax.get_yscale() == "log"]
+    labels = time_ax.get_legend_handles_labels()[1]
+    assert labels[0] == "alloc: all instances (table without the split)"
+    compact = comparison.compact_table(old)
+    assert len(compact) == 1 and np.isnan(compact.proof_s.iloc[0])
+    # Older still: no pb_violated / pb_unknown columns beside pb_holds.
+    with_pb = tables.t_local(local_records().query("model == 'cnn'"))
+    older = with_pb.drop(columns=["pb_violated", "pb_unknown", "pb_time_holds_mean"])
+    counts = comparison.compact_table(older).set_index("method").loc["pb"]
+    assert counts.holds == 8 and pd.isna(counts.violated) and pd.isna(counts.unknown)
+    fig = comparison.plot_comparison(older, "older")
+    assert any(ax.get_title() == "cnn: pb\nholds/violated/unknown 8/?/?" for ax in fig.axes)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="^table: expected a verification table"):
+        comparison.method_cells(pd.DataFrame({"alpha": [1.0]}))
+    with pytest.raises(ValueError, match="^table: expected a pandas DataFrame"):
+        comparison.plot_comparison([1, 2], "x")
+    with pytest.raises(ValueError, match="^title"):
+        comparison.plot_comparison(tables.t_local(local_records()), None)
+    with pytest.raises(ValueError, match="^table_csv"):
+        comparison.save_comparison("/nonexistent/t_local.csv", "/tmp/x.png")
