@@ -2,21 +2,35 @@
 and a short reading of the trends computed from the tables (never written by hand).
 
 :func:`write_report` reads what the notebooks wrote under ``tables/`` and ``figures/``;
-a missing table or figure is listed as missing rather than skipped silently.
+a missing table or figure is listed as missing rather than skipped silently. The
+verification tables (T-local, T-global, T-resnet: :data:`COMPARED`) are shown as their
+figure (:func:`kpstudy.comparison.plot_comparison`), a compact table of the numbers a
+reader compares (:func:`kpstudy.comparison.compact_table`), a link to the full CSV and
+the full table folded; their readings test each trend the paper states
+(:mod:`kpstudy.trends`) on our numbers and on the paper's.
 """
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from kpstudy.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
 from kpstudy.io import write_text_atomic
 from kpstudy.tables import reading_comparison
+from kpstudy.trends import statement_lines
 
-__all__ = ["SECTIONS", "campaign_readings", "t_prob_readings", "write_report"]
+__all__ = [
+    "COMPARED",
+    "SECTIONS",
+    "campaign_summary",
+    "compact_markdown",
+    "t_prob_readings",
+    "trend_readings",
+    "write_report",
+]
 
 #: (title, notebook, tables, figures, what it reproduces)
 SECTIONS = (
@@ -28,7 +42,14 @@ SECTIONS = (
         "paper §8.1, Figs. 5–6",
     ),
     ("Trained backbones", "02_training", ["training"], ["training"], "paper §8.1"),
-    ("F-sym: heatmap symmetry", "03_symmetry", ["f_sym"], ["f_sym"], "paper Fig. 8"),
+    (
+        "F-sym: heatmap symmetry",
+        "03_symmetry",
+        ["f_sym"],
+        ["f_sym"],
+        "paper Fig. 8 (table: median and 90th percentile over maps of each indicator's "
+        "magnitude, |skewness|, |mean − median|, |mean − mode|, and of the IQR)",
+    ),
     (
         "F-alloc and F-kps: allocated tolerances",
         "04_allocation",
@@ -67,8 +88,13 @@ SECTIONS = (
 )
 
 
+#: The tables shown as figure + compact table (their figure has the table's name).
+COMPARED = ("t_local", "t_global", "t_resnet")
+
+
 def write_report(out, profile: dict | None = None) -> Path:
-    """Assemble ``out/REPORT.md`` from ``out/tables`` and ``out/figures``."""
+    """Assemble ``out/REPORT.md`` from ``out/tables`` and ``out/figures``; ``profile``:
+    the run's settings, listed first. Returns the path of ``REPORT.md``."""
     out = Path(out)
     tables, figures = out / "tables", out / "figures"
     lines = [
@@ -76,7 +102,10 @@ def write_report(out, profile: dict | None = None) -> Path:
         "",
         "Written by `python -m kpstudy reproduce`; every number below comes from the tables "
         "beside this file (`tables/*.csv`), produced by the notebooks in `notebooks/`. Paper "
-        "columns are the numbers of the paper (ModelVerification.jl on an RTX A4000).",
+        "columns are the numbers of the paper (ModelVerification.jl on an RTX A4000). For "
+        "T-local, T-global and T-resnet, a figure shows every method beside the paper (the "
+        "allocation method `alloc` under each tolerance reading, the pose-bound method "
+        "`pb`), then a compact table and the full one (folded, and as CSV).",
         "",
     ]
     if profile:
@@ -85,9 +114,9 @@ def write_report(out, profile: dict | None = None) -> Path:
         lines.append("")
     readers = {
         "t_prob": t_prob_readings,
-        "t_local": _local,
-        "t_global": _global,
-        "t_resnet": _resnet,
+        "t_local": _campaign,
+        "t_global": _campaign,
+        "t_resnet": _campaign,
     }
     for title, notebook, names, pictures, source in SECTIONS:
         lines += [f"## {title}", "", f"Notebook `notebooks/{notebook}.ipynb`; {source}.", ""]
@@ -96,11 +125,17 @@ def write_report(out, profile: dict | None = None) -> Path:
             if not md.is_file():
                 lines += [f"*Table `{name}` is missing (its notebook has not run).*", ""]
                 continue
-            lines += [md.read_text().rstrip(), ""]
+            table = pd.read_csv(tables / f"{name}.csv")
+            if name in COMPARED:
+                lines += _compared(name, table, md, figures)
+            else:
+                lines += [md.read_text().rstrip(), ""]
             if name in readers:
-                text = readers[name](pd.read_csv(tables / f"{name}.csv"))
+                text = readers[name](table)
                 lines += ["**Reading.**", "", *[f"- {t}" for t in text], ""]
         for picture in pictures:
+            if picture in COMPARED and picture in names:
+                continue  # drawn above, with its compact table
             png = figures / f"{picture}.png"
             lines += (
                 [f"![{picture}](figures/{picture}.png)", ""]
@@ -108,6 +143,79 @@ def write_report(out, profile: dict | None = None) -> Path:
                 else [f"*Figure `{picture}` is missing.*", ""]
             )
     return write_text_atomic(out / "REPORT.md", "\n".join(lines))
+
+
+def _compared(name: str, table: pd.DataFrame, md: Path, figures: Path) -> list[str]:
+    """A verification table's figure, compact table, links and folded full table."""
+    png = figures / f"{name}.png"
+    lines = (
+        [f"![{name}](figures/{name}.png)", ""]
+        if png.is_file()
+        else [f"*Figure `{name}` is missing.*", ""]
+    )
+    lines += [
+        f"Per model and method: counts over the table, verified rate ours and the paper's "
+        f"(mean over the cells where both exist), seconds per instance over our proofs "
+        f"and our refutations apart, and the paper's. Full table: "
+        f"[tables/{name}.csv](tables/{name}.csv) ({table.shape[1]} columns); records: "
+        f"[tables/{name}_records.csv](tables/{name}_records.csv).",
+        "",
+        compact_markdown(compact_table(table)),
+        "",
+        f"<details><summary>Full table <code>{name}</code> ({len(table)} rows × "
+        f"{table.shape[1]} columns)</summary>",
+        "",
+        md.read_text().rstrip(),
+        "",
+        "</details>",
+        "",
+    ]
+    return lines
+
+
+def compact_markdown(compact: pd.DataFrame) -> str:
+    """:func:`kpstudy.comparison.compact_table` as a GitHub Markdown table: rates in %,
+    differences in percentage points, seconds to 3 significant digits, ``–`` where
+    there is no number."""
+    head = (
+        "| model | method | instances | holds / violated / unknown | cells | verified rate "
+        "| paper | Δ | proofs (s) | refutations (s) | paper (s) |"
+    )
+    lines = [head, "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in compact.itertuples(index=False):
+        counts = " / ".join(_count(v) for v in (r.holds, r.violated, r.unknown))
+        lines.append(
+            f"| {r.model or '–'} | {r.method} | {int(r.instances)} | {counts} | {r.cells} | "
+            f"{_pct(r.rate)} | {_pct(r.paper_rate)} | {_pp(r.delta)} | {_sec(r.proof_s)} | "
+            f"{_sec(r.refutation_s)} | {_sec(r.paper_s)} |"
+        )
+    return "\n".join(lines)
+
+
+def _count(value) -> str:
+    return "?" if value is None or pd.isna(value) else str(int(value))
+
+
+def _pct(value) -> str:
+    return "–" if pd.isna(value) else f"{value:.0%}"
+
+
+def _pp(value) -> str:
+    return "–" if pd.isna(value) else f"{100 * value:+.0f} pp"
+
+
+def _sec(value) -> str:
+    return "–" if pd.isna(value) else f"{value:.3g}"
+
+
+def trend_readings(table: pd.DataFrame) -> list[str]:
+    """One sentence per trend the paper states (:data:`kpstudy.trends.STATEMENTS`) that
+    the verification ``table`` can test: the paper's numbers on our cells, then ours per
+    model and method (:func:`kpstudy.comparison.method_cells`)."""
+    cells = method_cells(table)
+    keys = [*(c for c in CONDITIONS if c in cells), *GRID_COLUMNS]
+    series = ["model", "method"] if cells["model"].astype(bool).any() else ["method"]
+    return statement_lines(cells, keys, series)
 
 
 def _per_group(read, compare: tuple[str, str, str] | None = None):
@@ -138,19 +246,19 @@ def _per_group(read, compare: tuple[str, str, str] | None = None):
 def t_prob_readings(table: pd.DataFrame) -> list[str]:
     """Does soundness rise with κ and fall with α; does completeness do the opposite?
     Per tolerance reading, after the sentence comparing the readings with the paper."""
-    return _per_group(_t_prob, ("soundness", "paper_soundness", "Soundness"))(table)
+    lines = _per_group(_t_prob, ("soundness", "paper_soundness", "Soundness"))(table)
+    series = ["tolerance_units"] if "tolerance_units" in table else []
+    return lines + statement_lines(table, ["kappa", "alpha"], series)
 
 
 def _t_prob(table: pd.DataFrame) -> list[str]:
     s = table.pivot(index="kappa", columns="alpha", values="soundness")
     c = table.pivot(index="kappa", columns="alpha", values="completeness")
     paper = table.pivot(index="kappa", columns="alpha", values="paper_soundness")
-    rises = bool(np.all(np.diff(s.to_numpy(), axis=0) >= -1e-12))
     falls = bool(np.all(np.diff(c.to_numpy(), axis=0) <= 1e-12))
     return [
-        f"Soundness {'never falls' if rises else 'does not always rise'} as κ grows "
-        f"(range {s.to_numpy().min():.4g}–{s.to_numpy().max():.4g}; paper "
-        f"{table.paper_soundness.min():.4g}–{table.paper_soundness.max():.4g}).",
+        f"Soundness from {s.to_numpy().min():.4g} to {s.to_numpy().max():.4g} over the cells "
+        f"(paper {table.paper_soundness.min():.4g}–{table.paper_soundness.max():.4g}).",
         f"Completeness {'never rises' if falls else 'does not always fall'} as κ grows "
         f"(at most {c.to_numpy().max():.3g}; paper at most {table.paper_completeness.max():.3g}): "
         "independent per-keypoint tolerances are very conservative, as the paper says.",
@@ -168,27 +276,10 @@ def _t_prob(table: pd.DataFrame) -> list[str]:
     )
 
 
-def campaign_readings(table: pd.DataFrame, axes: dict[str, str], summary: bool = True) -> list[str]:
-    """For each axis ``{column: name}``, the verified rate and mean time at its smallest and
-    largest value (averaged over the other axes), ours and the paper's; with ``summary``,
-    first the counts and the allocation's share of one-pixel cells."""
-    lines = _summary(table) if summary else []
-    for column, name in axes.items():
-        values = sorted(table[column].unique())
-        if len(values) < 2:
-            continue
-        lo, hi = table[table[column] == values[0]], table[table[column] == values[-1]]
-        lines.append(
-            f"{name} {_fmt(values[0])} → {_fmt(values[-1])}: verified rate "
-            f"{_rate(lo.verified_rate)} → {_rate(hi.verified_rate)} (paper "
-            f"{_rate(lo.paper_rate)} → {_rate(hi.paper_rate)}); mean time "
-            f"{lo.time_mean.mean():.3g} s → {hi.time_mean.mean():.3g} s (paper "
-            f"{lo.paper_time_mean.mean():.3g} s → {hi.paper_time_mean.mean():.3g} s)."
-        )
-    return lines
-
-
-def _summary(table: pd.DataFrame) -> list[str]:
+def campaign_summary(table: pd.DataFrame) -> list[str]:
+    """The counts of a verification table's records (of one model and reading), what the
+    'paper' reading lets through, the allocation's one-pixel cells and the pose-bound
+    method's verdicts and rules."""
     lines = []
     total = int(table.instances.sum())
     holds, inside = int(table.holds.sum()), int(table.seeds_inside.sum())
@@ -245,33 +336,7 @@ def _summary(table: pd.DataFrame) -> list[str]:
 _RATE = ("verified_rate", "paper_rate", "Verified rate (allocation method)")
 
 
-@functools.partial(_per_group, compare=_RATE)
-def _local(table):
-    return campaign_readings(
-        table, {"alpha": "α", "kappa": "κ", "m": "m", "overlapping": "overlapping"}
-    )
-
-
-@functools.partial(_per_group, compare=_RATE)
-def _global(table):
-    lines = campaign_readings(table, {"alpha": "α", "kappa": "κ"})
-    for kind in sorted(table.kind.unique()):
-        part = table[table.kind == kind]
-        lines += [f"{kind}: " + s for s in campaign_readings(part, {"level": "level"}, False)]
-    return lines
-
-
-@functools.partial(_per_group, compare=_RATE)
-def _resnet(table):
-    return campaign_readings(table, {"overlapping": "overlapping"})
-
-
-def _rate(values: pd.Series) -> str:
-    values = values.dropna()
-    return "n/a" if values.empty else f"{values.mean():.1%}"
-
-
-def _fmt(value) -> str:
-    if isinstance(value, (bool, np.bool_)):
-        return "yes" if value else "no"
-    return f"{value:g}"
+def _campaign(table: pd.DataFrame) -> list[str]:
+    """Per model, the readings' comparison with the paper; per model and reading, the
+    counts; then the paper's trends, per model and method."""
+    return _per_group(campaign_summary, _RATE)(table) + trend_readings(table)

@@ -1,0 +1,129 @@
+"""kpstudy.report and kpstudy.trends: REPORT.md from stored tables, old ones included."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from kpstudy import comparison, report, tables, trends
+from kpstudy.io import save_figure, write_table
+from tests.test_comparison import local_records
+
+
+def _results(tmp_path, table: pd.DataFrame, name: str = "t_local", figure: bool = True):
+    out = tmp_path / "quick"
+    write_table(table, out / "tables" / name)
+    if figure:
+        save_figure(comparison.plot_comparison(table, name), out / "figures" / f"{name}.png")
+    return out
+
+
+def test_trend_counts_pairs_along_and_against():
+    cells = pd.DataFrame(
+        {
+            "m": [2, 2, 3, 3, 4, 4],
+            "alpha": [1.0, 1.5] * 3,
+            "rate": [0.2, 0.5, 0.4, 0.1, 0.3, 0.3],
+            "time_all": [10.0, 10.2, 5.0, 1.0, np.nan, 3.0],
+        }
+    )
+    t = trends.trend(cells, "rate", "alpha", ["m"], +1)
+    assert (t.pairs, t.along, t.against, t.flat) == (3, 1, 1, 1)
+    assert t.mean_change == pytest.approx(0.0) and trends.verdict(t) == "no"
+    t = trends.trend(cells, "time_all", "alpha", ["m"], -1, relative=True)
+    assert (t.pairs, t.along, t.against, t.flat) == (2, 1, 0, 1)  # +2 % is unchanged
+    assert trends.verdict(t) == "yes"
+    none = trends.trend(cells[cells.alpha == 1.0], "rate", "alpha", ["m"], +1)
+    assert none.pairs == 0 and trends.verdict(none) == "cannot tell"
+    with pytest.raises(ValueError, match="^sign"):
+        trends.trend(cells, "rate", "alpha", ["m"], 0)
+    with pytest.raises(ValueError, match="^frame: expected a column 'kappa'"):
+        trends.trend(cells, "rate", "kappa", ["m"], 1)
+
+
+def test_report_shows_figure_compact_table_and_links(tmp_path):
+    table = tables.t_local(local_records())
+    out = _results(tmp_path, table)
+    text = report.write_report(out).read_text()
+    assert "![t_local](figures/t_local.png)" in text
+    assert text.count("figures/t_local.png") == 1  # not drawn twice
+    assert "[tables/t_local.csv](tables/t_local.csv)" in text
+    assert "| model | method | instances | holds / violated / unknown |" in text
+    # cnn, alloc (heatmap): 8 holds, 8 refutations; 50 % over 8 cells; 30 s proofs, 0.1 s
+    # refutations; the paper's mean over the m = 2 cells.
+    paper = np.mean([v[2] for k, v in tables.PAPER_T_LOCAL.items() if k[0] == 2])
+    paper_s = np.mean([v[0] for k, v in tables.PAPER_T_LOCAL.items() if k[0] == 2])
+    row = (
+        f"| cnn | alloc (heatmap) | 16 | 8 / 8 / 0 | 8 | 50% | {paper:.0%} | "
+        f"{100 * (0.5 - paper):+.0f} pp | 30 | 0.1 | {paper_s:.3g} |"
+    )
+    assert row in text
+    assert "| cnn_affine | pb | 16 | 8 / 0 / 8 | 8 | 50% |" in text
+    assert "<details><summary>Full table <code>t_local</code>" in text
+    assert (out / "tables" / "t_local.md").read_text().strip() in text
+    assert "*Figure `t_local_pose_bound` is missing.*" in text
+
+
+def test_readings_test_the_papers_trends_on_the_numbers(tmp_path):
+    table = tables.t_local(local_records())
+    lines = report.trend_readings(table)
+    by_text = {line.split("*")[1]: line for line in lines}
+    assert set(by_text) == {
+        "Verified rate rises with α",
+        "Verified rate falls with κ",
+        "Time per instance falls with α",
+        "Overlapping hulls cost more time",
+    }
+    rate = by_text["Verified rate rises with α"]
+    # The paper's m = 2 cells rise with α in all 4 pairs (overlap × κ).
+    assert "The paper's numbers on the same cells: yes (4 of 4 pairs along" in rate
+    # Ours: the 'heatmap' reading holds only at α = 1.5 (+100 %); the 'paper' one always.
+    assert "cnn alloc (heatmap): yes (4 of 4 pairs along, 0 against, 0 unchanged; " in rate
+    assert "mean change +100%" in rate
+    assert "cnn alloc (paper): no (0 of 4 pairs along, 0 against, 4 unchanged" in rate
+    cost = by_text["Overlapping hulls cost more time"]
+    assert "cnn pb: yes (4 of 4 pairs along" in cost  # 200 s against 50 s
+    assert "cnn alloc (paper): no (0 of 4 pairs along, 0 against, 4 unchanged" in cost
+    out = _results(tmp_path, table)
+    text = report.write_report(out).read_text()
+    assert all(line in text for line in lines)
+
+
+def test_t_prob_reading_says_whether_soundness_rises_with_kappa():
+    prob = pd.DataFrame(
+        {
+            "kappa": [1.0, 1.0, 2.0, 2.0],
+            "alpha": [1.0, 2.0, 1.0, 2.0],
+            "soundness": [0.9, 0.95, 0.85, 0.97],
+            "completeness": [0.1, 0.2, 0.05, 0.1],
+        }
+    )
+    lines = report.t_prob_readings(tables.t_prob(prob))
+    (line,) = [s for s in lines if s.startswith("*Soundness rises with κ*")]
+    assert "Ours: ours: mostly" not in line  # the series has a name only with readings
+    assert "ours: no (1 of 2 pairs along, 1 against, 0 unchanged" in line
+
+
+def test_old_results_folders_still_render(tmp_path):
+    """Tables from before the readings, the pose-bound method and the time split (read
+    back from CSV), without their figure: the report lists the figure as missing and
+    still gives the compact table and the readings."""
+    records = local_records(pose_bound=False)
+    records = records.query("model == 'cnn' and tolerance_units == 'heatmap'")
+    records = records.drop(columns=["model", "tolerance_units"])
+    old = tables.t_local(records).drop(columns=["time_holds_mean", "time_violated_mean"])
+    out = _results(tmp_path, old, figure=False)
+    text = report.write_report(out).read_text()
+    assert "*Figure `t_local` is missing.*" in text
+    assert "| – | alloc | 16 | 8 / 8 / 0 | 8 | 50% |" in text
+    assert text.split("| – | alloc |")[1].split("\n")[0].endswith("| – | – | 62.2 |")
+    assert "*Verified rate rises with α* (the paper's statement)." in text
+    assert "alloc: yes (4 of 4 pairs along" in text
+    # With a figure drawn from the old table: proof times absent, all-instance times shown.
+    fig = comparison.plot_comparison(pd.read_csv(out / "tables" / "t_local.csv"), "old")
+    assert fig.axes
+
+
+def test_missing_tables_are_listed(tmp_path):
+    text = report.write_report(tmp_path / "empty").read_text()
+    for name in ("t_local", "t_global", "t_resnet", "t_prob", "f_sym"):
+        assert f"*Table `{name}` is missing (its notebook has not run).*" in text
