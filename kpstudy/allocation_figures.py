@@ -32,7 +32,9 @@ from kpstudy.sensitivity import pose_sensitivity
 __all__ = [
     "ALPHAS",
     "FRAME_COLUMNS",
+    "allocation_errorbars",
     "allocation_frame",
+    "inside_fractions",
     "keypoint_deviation_samples",
     "plot_allocation",
     "plot_keypoint_samples",
@@ -145,8 +147,10 @@ def plot_allocation(frame: pd.DataFrame, keypoint_names=None) -> Figure:
     Returns
     -------
     matplotlib.figure.Figure
-        Two panels, horizontal ``δu`` (left) and vertical ``δv`` (right): per keypoint one
-        errorbar marker (mean ± std over images) per α, offset side by side, and a legend.
+        Two panels, horizontal ``δu`` (top) and vertical ``δv`` (bottom), sharing the
+        keypoint axis: per keypoint one errorbar marker per α, offset side by side, and a
+        legend. The marker is the mean over images; the bar spans mean ± std, its lower
+        end clipped at 0 (tolerances are never negative).
     """
     if not isinstance(frame, pd.DataFrame):
         raise ValueError(f"frame: expected a pandas DataFrame, got {type(frame).__name__}")
@@ -161,38 +165,61 @@ def plot_allocation(frame: pd.DataFrame, keypoint_names=None) -> Figure:
         raise ValueError(f"frame: expected a single kappa, got {sorted(kappas.tolist())}")
     n_kp = int(frame["keypoint"].max()) + 1
     labels = _names(keypoint_names, n_kp)
-    stats = frame.groupby(["alpha", "keypoint"])[["du", "dv"]].agg(["mean", "std"])
-    stats = stats.fillna(0.0)  # std of a single image
-    alphas = stats.index.get_level_values("alpha").unique()
+    stats = allocation_errorbars(frame)
+    alphas = stats["alpha"].unique()
     width = 0.8 / len(alphas)
+    n_images = frame["image"].nunique()
 
-    fig = Figure(figsize=(max(8.0, 0.5 * n_kp), 4.0), layout="constrained")
-    axes = fig.subplots(1, 2, sharey=True)
-    for ax, col, title in zip(axes, ("du", "dv"), ("horizontal (u)", "vertical (v)")):
+    fig = Figure(figsize=(max(8.0, 0.42 * n_kp + 2.0), 7.0), layout="constrained")
+    axes = fig.subplots(2, 1, sharex=True, sharey=True)
+    for ax, col, title in zip(axes, ("du", "dv"), ("horizontal", "vertical")):
         for s, alpha in enumerate(alphas):
-            st = stats.loc[alpha]
-            x = st.index.to_numpy() - 0.4 + width * (s + 0.5)
+            st = stats[stats["alpha"] == alpha]
+            x = st["keypoint"].to_numpy() - 0.4 + width * (s + 0.5)
             ax.errorbar(
                 x,
-                st[(col, "mean")],
-                yerr=st[(col, "std")],
+                st[f"{col}_mean"],
+                yerr=[st[f"{col}_below"], st[f"{col}_above"]],
                 fmt="o",
                 ms=3.5,
                 capsize=2,
                 lw=1,
                 label=f"α = {alpha:g}",
             )
-        ax.set_xticks(np.arange(n_kp), labels, rotation=0 if keypoint_names is None else 90)
         ax.set_xlim(-0.6, n_kp - 0.4)
-        ax.set_xlabel("keypoint")
-        ax.set_title(f"{title} tolerance")
+        symbol = {"du": "δu", "dv": "δv"}[col]
+        ax.set_ylabel(f"allocated {symbol} (heatmap px)")
+        ax.set_title(f"{title} tolerance {symbol}", fontsize="medium")
         ax.grid(axis="y", alpha=0.3)
-    axes[0].set_ylabel("allocated δu (heatmap px), mean ± std")
-    axes[1].set_ylabel("allocated δv (heatmap px), mean ± std")
-    axes[1].yaxis.set_tick_params(labelleft=True)
-    axes[0].legend(loc="best", fontsize="small")
-    fig.suptitle(f"Optimal tolerance allocation (κ = {kappas[0]:g})")
+    axes[1].set_xticks(np.arange(n_kp), labels, rotation=0 if keypoint_names is None else 60,
+                       ha="center" if keypoint_names is None else "right")  # fmt: skip
+    axes[1].set_xlabel("keypoint")
+    axes[1].autoscale_view()
+    axes[1].set_ylim(bottom=0)  # shared: after both panels are drawn
+    axes[0].legend(loc="upper right", fontsize="small", ncol=len(alphas))
+    fig.suptitle(
+        f"Optimal tolerance allocation per keypoint (κ = {kappas[0]:g}, {n_images} images): "
+        "mean, bars ± std clipped at 0"
+    )
     return fig
+
+
+def allocation_errorbars(frame: pd.DataFrame) -> pd.DataFrame:
+    """The error bars of :func:`plot_allocation`: per α and keypoint, the mean allocated
+    tolerance over images and the bar's extent below and above it (heatmap px): ``std``
+    above, ``min(std, mean)`` below, so that the bar never goes below 0. Columns
+    ``alpha``, ``keypoint``, then ``du_mean``, ``du_below``, ``du_above`` and the same
+    for ``dv``; the std of a single image is 0."""
+    stats = frame.groupby(["alpha", "keypoint"])[["du", "dv"]].agg(["mean", "std"])
+    stats = stats.fillna(0.0)
+    out = stats.index.to_frame(index=False)
+    for col in ("du", "dv"):
+        mean = stats[(col, "mean")].to_numpy(np.float64)
+        std = stats[(col, "std")].to_numpy(np.float64)
+        out[f"{col}_mean"] = mean
+        out[f"{col}_below"] = np.minimum(std, mean)
+        out[f"{col}_above"] = std
+    return out
 
 
 def keypoint_deviation_samples(points_3d, keypoints, K, alpha, n_samples, seed, scale):
@@ -251,7 +278,9 @@ def keypoint_deviation_samples(points_3d, keypoints, K, alpha, n_samples, seed, 
     return (project_batch(P, R_s, t_s, K) - project_batch(P, R, t, K)) * np.array([sx, sy])
 
 
-def plot_keypoint_samples(deviations, dv, keypoints=(0, 2, 4), keypoint_names=None) -> Figure:
+def plot_keypoint_samples(
+    deviations, dv, keypoints=(0, 2, 4), keypoint_names=None, *, alpha: float, kappa: float
+) -> Figure:
     """F-kps: sampled keypoint deviations against the allocated box, a panel per keypoint.
 
     Parameters
@@ -266,12 +295,18 @@ def plot_keypoint_samples(deviations, dv, keypoints=(0, 2, 4), keypoint_names=No
         1, 3 and 5).
     keypoint_names : sequence of str, optional
         Names of all K keypoints, for the panel titles.
+    alpha, kappa : float
+        The tolerance factor α of the samples and the allocation's κ, both > 0, named in
+        the title.
 
     Returns
     -------
     matplotlib.figure.Figure
-        One panel per keypoint: a scatter of the samples ``(du, dv)`` and the box
-        ``[−δu, δu] × [−δv, δv]``; the title gives the fraction of samples inside the box.
+        One panel per keypoint: a scatter of the samples ``(du, dv)``, the allocated box
+        ``[−δu, δu] × [−δv, δv]`` (solid; a line or a cross where a half-width is 0) and
+        the pixels it allows, ``[−δu − ½, δu + ½] × [−δv − ½, δv + ½]`` (dashed: the
+        deviations that round into them for a keypoint at a pixel centre). The title gives
+        δu, δv and the fraction of samples inside each (:func:`inside_fractions`).
     """
     D = _checks.float_array(deviations, "deviations", (None, None, 2))
     if D.shape[0] < 1 or D.shape[1] < 1:
@@ -289,24 +324,56 @@ def plot_keypoint_samples(deviations, dv, keypoints=(0, 2, 4), keypoint_names=No
     ):
         raise ValueError(f"keypoints: expected a non-empty sequence of indices in [0, {n_kp})")
     names = _names(keypoint_names, n_kp)
+    alpha = float(_checks.positive(alpha, "alpha"))
+    kappa = float(_checks.positive(kappa, "kappa"))
+    within, rounding = inside_fractions(D, box)
 
-    fig = Figure(figsize=(3.6 * idx.size, 3.8), layout="constrained")
+    fig = Figure(figsize=(3.8 * idx.size, 4.4), layout="constrained")
     axes = fig.subplots(1, idx.size, squeeze=False)[0]
     for ax, k in zip(axes, idx):
         (du, dvk), d = box[k], D[:, k]
-        inside = np.mean(np.all(np.abs(d) <= box[k], axis=-1))
         ax.scatter(d[:, 0], d[:, 1], s=2, c="tab:blue", alpha=0.4, lw=0, label="samples")
-        rect = Rectangle((-du, -dvk), 2 * du, 2 * dvk, fill=False, ec="tab:orange", lw=2)
-        rect.set_label("allocated box")
-        ax.add_patch(rect)
+        cell = Rectangle(
+            (-du - 0.5, -dvk - 0.5), 2 * du + 1, 2 * dvk + 1, fill=False, ec="tab:green",
+            lw=1.5, ls="--", label="allowed pixels (±(δ + ½))",
+        )  # fmt: skip
+        ax.add_patch(cell)
+        if du > 0 and dvk > 0:
+            rect = Rectangle((-du, -dvk), 2 * du, 2 * dvk, fill=False, ec="tab:orange", lw=2)
+            rect.set_label("allocated box (±δ)")
+            ax.add_patch(rect)
+        else:  # a degenerate box: a segment, or a point drawn as a cross
+            point = du == 0 and dvk == 0
+            ax.plot([-du, du], [-dvk, dvk], color="tab:orange", lw=2.5,
+                    marker="+" if point else None, ms=14, mew=2.5,
+                    label=f"allocated box (±δ: a {'point' if point else 'segment'})")  # fmt: skip
         ax.axhline(0, color="0.6", lw=0.6)
         ax.axvline(0, color="0.6", lw=0.6)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("deviation u (heatmap px)")
         ax.set_ylabel("deviation v (heatmap px)")
-        ax.set_title(f"keypoint {names[k]}: {inside:.1%} inside")
-    axes[0].legend(loc="upper right", fontsize="small")
+        ax.set_title(
+            f"keypoint {names[k]}: δu = {du:g}, δv = {dvk:g} px\n"
+            f"{within[k]:.1%} within ±δ, {rounding[k]:.1%} within ±(δ + ½)",
+            fontsize="medium",
+        )
+    axes[0].legend(loc="upper right", fontsize="x-small")
+    fig.suptitle(
+        f"Keypoint deviations of {D.shape[0]} pose errors uniform in Ξ (α = {alpha:g}: "
+        f"ε = α·[10°, 10°, 10°, 4 m, 4 m, 20 m]) against the allocation (κ = {kappa:g})"
+    )
     return fig
+
+
+def inside_fractions(deviations, dv) -> tuple[np.ndarray, np.ndarray]:
+    """Per keypoint, the fraction of samples ``deviations`` (S, K, 2) inside the box
+    ``|d| ≤ dv`` (K, 2) and inside ``|d| ≤ dv + ½`` (the allowed pixels' extent for a
+    keypoint at a pixel centre), both ``(K,)`` in [0, 1]."""
+    D = np.asarray(deviations, np.float64)
+    box = np.asarray(dv, np.float64)
+    within = np.mean(np.all(np.abs(D) <= box, axis=-1), axis=0)
+    rounding = np.mean(np.all(np.abs(D) <= box + 0.5, axis=-1), axis=0)
+    return within, rounding
 
 
 def _intrinsics_per_image(K, n: int) -> np.ndarray:

@@ -3,13 +3,16 @@
 import numpy as np
 import pandas as pd
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import airliner_keypoints
 from kpstudy.allocation_figures import (
     FRAME_COLUMNS,
+    allocation_errorbars,
     allocation_frame,
+    inside_fractions,
     keypoint_deviation_samples,
     plot_allocation,
     plot_keypoint_samples,
@@ -101,12 +104,39 @@ def test_plot_allocation(frame, tmp_path):
     axes = fig.get_axes()
     assert len(axes) == 2
     for ax, unit in zip(axes, ("δu", "δv")):
-        assert "heatmap px" in ax.get_ylabel() and unit in ax.get_ylabel()
+        assert ax.get_ylabel() == f"allocated {unit} (heatmap px)"
         assert len(ax.containers) == len(ALPHAS)  # one errorbar series per α
+        assert ax.get_ylim()[0] == 0
+        for container in ax.containers:  # no bar reaches below 0
+            (bars,) = container.lines[2]
+            assert min(seg[:, 1].min() for seg in bars.get_segments()) >= 0
     labels = [t.get_text() for t in axes[0].get_legend().get_texts()]
     assert labels == [f"α = {a:g}" for a in ALPHAS]
+    assert "κ = 1" in fig.get_suptitle() and f"{N_IMAGES} images" in fig.get_suptitle()
     fig.savefig(tmp_path / "f_alloc.png", dpi=40)
     assert (tmp_path / "f_alloc.png").stat().st_size > 0
+    # The labels, the title and the panels do not overlap once drawn.
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    title = fig._suptitle.get_window_extent(renderer)
+    for ax in axes:
+        label = ax.yaxis.label.get_window_extent(renderer)
+        assert label.x0 >= 0 and label.y0 >= 0  # not clipped at the figure's edge
+        assert not label.overlaps(title) and not ax.title.get_window_extent(renderer).overlaps(
+            title
+        )
+
+
+def test_error_bars_are_clipped_at_zero():
+    frame = pd.DataFrame(
+        {"image": [0, 1, 2], "alpha": 1.0, "kappa": 1.0, "keypoint": 0, "du": [0, 0, 3],
+         "dv": [2, 2, 2]}
+    )  # fmt: skip
+    bars = allocation_errorbars(frame).iloc[0]
+    assert bars.du_mean == 1.0 and bars.du_above == pytest.approx(np.sqrt(3.0))
+    assert bars.du_below == 1.0  # std √3 > mean 1: the bar stops at 0
+    assert (bars.dv_mean, bars.dv_below, bars.dv_above) == (2.0, 0.0, 0.0)
 
 
 def test_plot_keypoint_samples(scene, frame, tmp_path):
@@ -114,18 +144,41 @@ def test_plot_keypoint_samples(scene, frame, tmp_path):
     d = keypoint_deviation_samples(P, V[0], K, 0.5, 300, 0, SCALE)
     dv = frame[(frame.image == 0) & (frame.alpha == 0.5)][["du", "dv"]].to_numpy()
     names = [f"kp{k}" for k in range(len(P))]
-    fig = plot_keypoint_samples(d, dv, keypoints=(0, 4), keypoint_names=names)
+    dv = np.maximum(dv, 1)
+    fig = plot_keypoint_samples(d, dv, keypoints=(0, 4), keypoint_names=names, alpha=0.5, kappa=1.0)
     axes = fig.get_axes()
     assert len(axes) == 2
+    assert "α = 0.5" in fig.get_suptitle() and "κ = 1" in fig.get_suptitle()
     for ax, k in zip(axes, (0, 4)):
         inside = np.mean(np.all(np.abs(d[:, k]) <= dv[k], axis=-1))
-        assert ax.get_title() == f"keypoint kp{k}: {inside:.1%} inside"
-        (rect,) = ax.patches
+        near = np.mean(np.all(np.abs(d[:, k]) <= dv[k] + 0.5, axis=-1))
+        assert ax.get_title() == (
+            f"keypoint kp{k}: δu = {dv[k, 0]:g}, δv = {dv[k, 1]:g} px\n"
+            f"{inside:.1%} within ±δ, {near:.1%} within ±(δ + ½)"
+        )
+        cell, rect = ax.patches
         assert (rect.get_width(), rect.get_height()) == (2 * dv[k, 0], 2 * dv[k, 1])
+        assert (cell.get_width(), cell.get_height()) == (2 * dv[k, 0] + 1, 2 * dv[k, 1] + 1)
     fig.savefig(tmp_path / "f_kps.png", dpi=40)
     assert (tmp_path / "f_kps.png").stat().st_size > 0
-    huge = plot_keypoint_samples(d, np.full_like(dv, 50), keypoints=[3])
-    assert len(huge.get_axes()) == 1 and "100.0% inside" in huge.get_axes()[0].get_title()
+    huge = plot_keypoint_samples(d, np.full_like(dv, 50), keypoints=[3], alpha=0.5, kappa=1)
+    assert len(huge.get_axes()) == 1 and "100.0% within ±δ" in huge.get_axes()[0].get_title()
+
+
+def test_zero_tolerance_is_drawn_and_named():
+    """δu = δv = 0 (a one-pixel cell): a cross at the origin, not an invisible box, and the
+    title says so and counts the samples that round into that pixel."""
+    d = np.array([[[0.2, -0.1]], [[0.7, 0.0]], [[0.0, 0.4]], [[-0.3, -0.6]]])
+    fig = plot_keypoint_samples(d, np.zeros((1, 2)), keypoints=[0], alpha=1.0, kappa=1.5)
+    (ax,) = fig.get_axes()
+    assert ax.get_title() == "keypoint 0: δu = 0, δv = 0 px\n0.0% within ±δ, 50.0% within ±(δ + ½)"
+    (cross,) = [line for line in ax.lines if line.get_label().startswith("allocated box")]
+    assert cross.get_marker() == "+" and cross.get_markersize() >= 10
+    (cell,) = ax.patches
+    assert (cell.get_width(), cell.get_height()) == (1.0, 1.0)
+    within, rounding = inside_fractions(d, np.zeros((1, 2)))
+    np.testing.assert_array_equal(within, [0.0])
+    np.testing.assert_array_equal(rounding, [0.5])
 
 
 @pytest.mark.parametrize(
@@ -174,11 +227,16 @@ def test_plots_bad_input(frame):
     with pytest.raises(ValueError, match="^keypoint_names"):
         plot_allocation(frame, keypoint_names=["a"])
     d = np.zeros((4, 3, 2))
+    ak = dict(alpha=1.0, kappa=1.0)
     with pytest.raises(ValueError, match="^dv"):
-        plot_keypoint_samples(d, np.zeros((2, 2)))
+        plot_keypoint_samples(d, np.zeros((2, 2)), **ak)
     with pytest.raises(ValueError, match="^dv"):
-        plot_keypoint_samples(d, -np.ones((3, 2)), keypoints=[0])
+        plot_keypoint_samples(d, -np.ones((3, 2)), keypoints=[0], **ak)
     with pytest.raises(ValueError, match="^keypoints"):
-        plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[3])
+        plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[3], **ak)
     with pytest.raises(ValueError, match="^deviations"):
-        plot_keypoint_samples(np.zeros((4, 3)), np.ones((3, 2)))
+        plot_keypoint_samples(np.zeros((4, 3)), np.ones((3, 2)), **ak)
+    with pytest.raises(ValueError, match="^alpha"):
+        plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[0], alpha=0.0, kappa=1.0)
+    with pytest.raises(ValueError, match="^kappa"):
+        plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[0], alpha=1.0, kappa=-1.0)
