@@ -214,9 +214,18 @@ def backbone_heatmaps(backbone, images, batch_size: int = 16) -> torch.Tensor:
 
 
 def summarise_indicators(frames) -> pd.DataFrame:
-    """Per group and axis, the median and 90th percentile of each indicator's magnitude
-    (``|skewness|``, ``|mean − median|``, ``|mean − mode|`` and the IQR), from
-    :func:`symmetry_indicators` frames ``{group: frame}``."""
+    """Per group and axis, the median and 90th percentile over maps of each indicator's
+    magnitude, from :func:`symmetry_indicators` frames ``{group: frame}``.
+
+    Returns
+    -------
+    DataFrame
+        One row per group and axis: ``group``, ``axis``, ``maps`` (count), then
+        ``abs_skewness_median``, ``abs_skewness_p90`` (dimensionless),
+        ``abs_mean_minus_median_*``, ``abs_mean_minus_mode_*`` (heatmap px) and
+        ``iqr_median``, ``iqr_p90`` (heatmap px, never negative): the names say that the
+        signed indicators are taken as magnitudes ``|·|``.
+    """
     rows = []
     for name, df in frames.items():
         for axis in ("u", "v"):
@@ -224,8 +233,9 @@ def summarise_indicators(frames) -> pd.DataFrame:
             row = {"group": name, "axis": axis, "maps": len(part)}
             for col, _, _ in _PANELS:
                 values = part[col].abs().dropna()
-                row[f"{col}_median"] = float(values.median())
-                row[f"{col}_p90"] = float(values.quantile(0.9))
+                key = col if col == "iqr" else f"abs_{col}"
+                row[f"{key}_median"] = float(values.median())
+                row[f"{key}_p90"] = float(values.quantile(0.9))
             rows.append(row)
     return pd.DataFrame(rows)
 

@@ -284,3 +284,27 @@ def test_plot_indicators():
         plot_indicators({})
     with pytest.raises(ValueError, match="frames"):
         plot_indicators({"x": pd.DataFrame({"a": [1]})})
+
+
+def test_summary_columns_say_they_are_magnitudes():
+    from kpstudy.heatmaps import summarise_indicators
+
+    right = symmetry_indicators(separable_logits(lognormal_logits(W), lognormal_logits(H))[None])
+    left = symmetry_indicators(
+        separable_logits(lognormal_logits(W)[::-1], lognormal_logits(H)[::-1])[None]
+    )
+    table = summarise_indicators({"right": right, "left": left})
+    assert list(table.columns) == [
+        "group", "axis", "maps",
+        "abs_skewness_median", "abs_skewness_p90",
+        "abs_mean_minus_median_median", "abs_mean_minus_median_p90",
+        "abs_mean_minus_mode_median", "abs_mean_minus_mode_p90",
+        "iqr_median", "iqr_p90",
+    ]  # fmt: skip
+    # Mirrored maps: opposite skewness, the same magnitude in the table.
+    by = table.set_index(["group", "axis"])
+    assert row(left, "u")["skewness"] < 0 < row(right, "u")["skewness"]
+    assert by.loc[("left", "u"), "abs_skewness_median"] == pytest.approx(
+        by.loc[("right", "u"), "abs_skewness_median"], rel=1e-9
+    )
+    assert (table.filter(like="abs_") > 0).all().all()
