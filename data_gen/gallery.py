@@ -13,6 +13,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
 
 from data_gen.dataset import load_coco, read_image  # noqa: E402
 from data_gen.occluders import FAMILIES, occluder_catalog  # noqa: E402
@@ -23,7 +24,10 @@ from kpstudy.io import save_figure  # noqa: E402
 
 
 def plot_renders(data_dir, count: int = 6, names: bool = True, seed: int = 0) -> plt.Figure:
-    """A grid of ``count`` renders with their keypoints (red: visible, blue: hidden) and names."""
+    """A grid of ``count`` renders with their keypoints (red: visible, blue: hidden); with
+    ``names``, each keypoint's number is placed clear of the other labels
+    (:func:`place_labels`, a leader line back to its point) and a legend below the grid
+    names the numbers."""
     coco = load_coco(data_dir)
     names_list = coco["categories"][0]["keypoints"]
     rng = np.random.default_rng(seed)
@@ -39,22 +43,95 @@ def plot_renders(data_dir, count: int = 6, names: bool = True, seed: int = 0) ->
         image, ann = coco["images"][k], coco["annotations"][k]
         ax.imshow(read_image(Path(data_dir) / image["file_name"]))
         kp = np.reshape(ann["keypoints"], (-1, 3))
-        for (u, v, flag), name in zip(kp, names_list):
+        for u, v, flag in kp:
             ax.plot(
                 u, v, "o", ms=3.5, mec="k", mew=0.4, color="red" if flag == 2 else "deepskyblue"
             )
-            if names:
+        if names:
+            px_per_inch = image["width"] / 6.4  # the panel is about 6.4 in wide
+            labels = [str(i) for i in range(len(kp))]
+            box = (0.14 * px_per_inch, 0.13 * px_per_inch)  # a 6 pt number in its bbox
+            centres = place_labels(kp[:, :2], box, radius=0.13 * px_per_inch)
+            for (u, v, _), (x, y), label in zip(kp, centres, labels):
                 ax.annotate(
-                    name,
+                    label,
                     (u, v),
-                    xytext=(3, 2),
-                    textcoords="offset points",
-                    fontsize=4.5,
+                    xytext=(x, y),
+                    textcoords="data",
+                    ha="center",
+                    va="center",
+                    fontsize=6,
                     color="yellow",
+                    bbox=dict(boxstyle="round,pad=0.1", fc="black", alpha=0.55, lw=0),
+                    arrowprops=dict(arrowstyle="-", color="yellow", lw=0.5, shrinkA=0, shrinkB=0),
                 )
         ax.set_title(f"image {image['id']} ({image['split']})", fontsize=9)
-    fig.tight_layout()
+    if names:
+        legend = "   ".join(f"{i}\u00a0{name}" for i, name in enumerate(names_list))
+        fig.text(0.5, 0.005, _wrap(legend, 170), ha="center", va="bottom", fontsize=8)
+        fig.tight_layout(rect=(0, 0.06, 1, 1))
+    else:
+        fig.tight_layout()
     return fig
+
+
+def place_labels(points, box, radius: float) -> np.ndarray:
+    """Centres for one label per point, clear of each other and of the points.
+
+    Greedy, in the order of ``points``: each label takes, among 16 directions on rings of
+    ``radius``, ``2·radius`` … ``4·radius`` around its point, the first position with
+    the fewest overlaps with the labels already placed, then with the fewest points
+    under it, then the nearest ring.
+
+    Parameters
+    ----------
+    points : array_like, shape (K, 2)
+        The labelled points ``(u, v)``, pixels.
+    box : (float, float)
+        A label's width and height, pixels.
+    radius : float
+        The first ring's distance from its point, pixels (> 0).
+
+    Returns
+    -------
+    ndarray, shape (K, 2)
+        The labels' centres, pixels.
+    """
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points: expected shape (K, 2), got {pts.shape}")
+    w, h = (float(b) for b in box)
+    if not (w > 0 and h > 0 and radius > 0):
+        raise ValueError(f"box, radius: expected positive sizes, got {box!r}, {radius!r}")
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    rings = [
+        (ring, radius * ring * np.stack([np.cos(angles), np.sin(angles)], 1))
+        for ring in (1, 2, 3, 4)
+    ]
+    placed = np.empty((0, 2))
+    for p in pts:
+        best, best_cost = None, None
+        for ring, offsets in rings:
+            for centre in p + offsets:
+                overlaps = np.sum(
+                    (np.abs(placed[:, 0] - centre[0]) < w) & (np.abs(placed[:, 1] - centre[1]) < h)
+                )
+                covered = np.sum(
+                    (np.abs(pts[:, 0] - centre[0]) < w / 2 + 1)
+                    & (np.abs(pts[:, 1] - centre[1]) < h / 2 + 1)
+                )
+                cost = (int(overlaps), int(covered), ring)
+                if best_cost is None or cost < best_cost:
+                    best, best_cost = centre, cost
+        placed = np.vstack([placed, best])
+    return placed
+
+
+def _wrap(text: str, width: int) -> str:
+    """``text`` broken at spaces into lines of at most ``width`` characters."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width, break_long_words=False, break_on_hyphens=False))
 
 
 def plot_occluders(
@@ -92,7 +169,8 @@ def plot_occluders(
 
 
 def plot_perturbations(data_dir, image_id: int | None = None) -> plt.Figure:
-    """One seed image with each stored perturbation kind: its hull's vertices and a point inside."""
+    """One seed image with each stored perturbation kind: its hull's vertices and a point
+    inside, each with its difference from the seed (:func:`perturbation_sheet`)."""
     kinds = [k for k in KINDS if (Path(data_dir) / "perturbations" / k / "meta.json").is_file()]
     if not kinds:
         raise FileNotFoundError(f"data_dir: no perturbation sets in {data_dir}")
@@ -112,20 +190,121 @@ def plot_perturbations(data_dir, image_id: int | None = None) -> plt.Figure:
         else:
             level = max(r["level"] for r in meta)
             rows.append((f"{kind} ±{level:g}", hull_vertices(data_dir, target, kind, level=level)))
-    cols = max(len(v) for _, v in rows) + 1
-    fig, axes = plt.subplots(len(rows), cols, figsize=(3.2 * cols, 2.3 * len(rows)), squeeze=False)
+    return perturbation_sheet(rows)
+
+
+#: A vertex whose changed pixels cover at most this fraction of the image gets a circle.
+_LOCAL_CHANGE = 0.25
+
+
+def perturbation_sheet(rows, seed: int = 0) -> plt.Figure:
+    """Hull vertices and their difference from the seed image, two figure rows per hull.
+
+    Parameters
+    ----------
+    rows : list of (str, array_like)
+        ``(label, vertices)`` per hull, ``vertices`` of shape ``(n + 1, H, W, 3)`` in
+        [0, 255] with the seed image first (:func:`data_gen.perturb.hull_vertices`).
+    seed : int
+        Seed of the random point inside each hull (Dirichlet weights).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Per hull, a row of images (the seed, each vertex, a point inside the hull) and
+        below it ``|image − seed|`` (the largest over the channels, grey levels) on one
+        colour scale per hull, from 0 to the hull's largest difference, named in the
+        titles with the number of pixels changed (by more than half a grey level). A local
+        change (at most a quarter of the pixels) is circled in red on the vertex and on its
+        difference, so that a small occluder or a 3 × 3 block is found at a glance.
+    """
+    if not rows:
+        raise ValueError("rows: expected one or more (label, vertices) pairs")
+    rng = np.random.default_rng(seed)
+    hulls = []
+    for label, vertices in rows:
+        v = np.asarray(vertices, np.float64)
+        if v.ndim != 4 or v.shape[0] < 2 or v.shape[-1] != 3:
+            raise ValueError(
+                f"rows: expected vertices of shape (n + 1, H, W, 3) for {label!r}, got {v.shape}"
+            )
+        weights = rng.dirichlet(np.ones(len(v)))
+        hulls.append((label, [*v, np.tensordot(weights, v, axes=1)]))
+    cols = max(len(shown) for _, shown in hulls)
+    fig, axes = plt.subplots(
+        2 * len(hulls), cols, figsize=(3.0 * cols, 2.2 * 2 * len(hulls)), squeeze=False
+    )
     for ax in axes.ravel():
         ax.axis("off")
-    rng = np.random.default_rng(0)
-    for r, (label, vertices) in enumerate(rows):
-        weights = rng.dirichlet(np.ones(len(vertices)))
-        shown = [*vertices, np.tensordot(weights, vertices, axes=1)]
-        for c, image in enumerate(shown):
-            axes[r, c].imshow(np.clip(image, 0, 255).astype(np.uint8), interpolation="nearest")
-            title = "seed" if c == 0 else ("in the hull" if c == len(shown) - 1 else f"vertex {c}")
-            axes[r, c].set_title(f"{label}: {title}" if c == 0 else title, fontsize=7)
+    for r, (label, shown) in enumerate(hulls):
+        seed_image = shown[0]
+        diffs = [np.abs(image - seed_image).max(axis=-1) for image in shown]
+        top = max(float(d.max()) for d in diffs) or 1.0
+        for c, (image, diff) in enumerate(zip(shown, diffs)):
+            ax, below = axes[2 * r, c], axes[2 * r + 1, c]
+            ax.imshow(np.clip(image, 0, 255).astype(np.uint8), interpolation="nearest")
+            last = c == len(shown) - 1
+            title = "seed" if c == 0 else ("in the hull" if last else f"vertex {c}")
+            ax.set_title(f"{label}: {title}" if c == 0 else title, fontsize=7)
+            if c == 0:
+                note = f"below: |image − seed|\n(largest over RGB)\n0 – {top:.3g} grey levels"
+                below.text(
+                    0.5, 0.5, note, ha="center", va="center", fontsize=7,
+                    transform=below.transAxes,
+                )  # fmt: skip
+                continue
+            below.imshow(diff, cmap="magma", vmin=0, vmax=top, interpolation="nearest")
+            changed = diff > 0.5
+            below.set_title(
+                f"|Δ| ≤ {diff.max():.3g} on {changed.sum()} px ({changed.mean():.2%})",
+                fontsize=6.5,
+            )
+            if 0 < changed.mean() <= _LOCAL_CHANGE:
+                for circle in change_circles(changed):
+                    for target in (ax, below):
+                        target.add_patch(
+                            Circle(circle[:2], circle[2], fill=False, ec="red", lw=1.5)
+                        )
     fig.tight_layout()
     return fig
+
+
+def change_circles(changed, max_circles: int = 8) -> np.ndarray:
+    """Circles around the changed areas of an image: one per group of changed pixels
+    (pixels within 3 of each other join a group), at most ``max_circles`` (the largest
+    groups).
+
+    Parameters
+    ----------
+    changed : array_like of bool, shape (H, W)
+        The changed pixels.
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+        ``(column, row, radius)`` per circle, pixels: centred on the group's bounding box,
+        1.25 × its half-diagonal and at least 6 % of the image's larger side, so that a few
+        pixels stay visible.
+    """
+    from scipy import ndimage
+
+    mask = np.asarray(changed, bool)
+    if mask.ndim != 2:
+        raise ValueError(f"changed: expected an (H, W) mask, got shape {mask.shape}")
+    groups, n = ndimage.label(ndimage.binary_dilation(mask, iterations=3) if mask.any() else mask)
+    circles = []
+    for box in ndimage.find_objects(groups)[:n]:
+        inside = mask[box]
+        if not inside.any():
+            continue
+        rows, cols = np.nonzero(inside)
+        r0, r1 = rows.min() + box[0].start, rows.max() + box[0].start
+        c0, c1 = cols.min() + box[1].start, cols.max() + box[1].start
+        half = 0.5 * np.hypot(r1 - r0 + 1, c1 - c0 + 1)
+        radius = max(1.25 * half, 0.06 * max(mask.shape))
+        circles.append(((c0 + c1) / 2, (r0 + r1) / 2, radius, inside.sum()))
+    circles.sort(key=lambda c: -c[3])
+    return np.array([c[:3] for c in circles[:max_circles]], np.float64).reshape(-1, 3)
 
 
 def write_gallery(out, data_dir=None) -> list[Path]:
