@@ -48,7 +48,6 @@ __all__ = [
     "PAPER_T_PROB",
     "PAPER_T_RESNET",
     "plot_pose_bounds",
-    "plot_table",
     "pose_bound_ratios",
     "reading_comparison",
     "summarise",
@@ -375,40 +374,6 @@ def _with_paper(out: pd.DataFrame, paper: dict, key) -> pd.DataFrame:
     return out
 
 
-def plot_table(table: pd.DataFrame, axes: list[str], title: str):
-    """Verified rate and mean verification time per cell, ours beside the paper's.
-
-    ``axes``: the columns that name a cell (e.g. ``["m", "overlapping", "kappa", "alpha"]``).
-    Returns a matplotlib figure with two panels (rate; time in seconds, log scale).
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    labels = [
-        ", ".join(f"{a}={_short(v)}" for a, v in zip(axes, row))
-        for row in table[axes].itertuples(index=False)
-    ]
-    x = np.arange(len(table))
-    fig, (top, bottom) = plt.subplots(
-        2, 1, figsize=(max(6, 0.45 * len(x) + 2), 7), sharex=True, layout="constrained"
-    )
-    for ax, ours, paper, label in (
-        (top, "verified_rate", "paper_rate", "verified rate"),
-        (bottom, "time_mean", "paper_time_mean", "verification time (s)"),
-    ):
-        ax.bar(x - 0.2, table[ours], 0.4, label="kpstudy (this run)")
-        ax.bar(x + 0.2, table[paper], 0.4, label="paper (MV.jl, RTX A4000)")
-        ax.set_ylabel(label)
-    top.set_ylim(0, 1.05)
-    bottom.set_yscale("log")
-    bottom.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
-    top.legend(fontsize="small")
-    top.set_title(title)
-    return fig
-
-
 def pose_bound_ratios(records: pd.DataFrame, column: str = "pb_bound") -> pd.DataFrame:
     """A pose-bound quantity ÷ ε at α = 1 (``[10°, 10°, 10°, 4, 4, 20 m]``) per pose axis,
     one row per hull (it does not depend on α or κ).
@@ -482,9 +447,3 @@ def plot_pose_bounds(records: pd.DataFrame, title: str):
     )
     ax.legend(fontsize="small")
     return fig
-
-
-def _short(value) -> str:
-    if isinstance(value, (bool, np.bool_)):
-        return "yes" if value else "no"
-    return f"{value:g}" if isinstance(value, (float, np.floating)) else str(value)
