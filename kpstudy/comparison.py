@@ -241,10 +241,8 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
     n_panels = len(methods) + 1
     panel_w = max(2.4, 0.7 * len(cols) + 0.9)
     panel_h = max(1.6, 0.5 * len(rows) + 0.9)
-    fig = Figure(
-        figsize=(max(9.0, panel_w * n_panels + 1.5), len(models) * (panel_h + 3.6) + 1.0),
-        layout="constrained",
-    )
+    width = max(9.0, panel_w * n_panels + 1.5)
+    fig = Figure(figsize=(width, len(models) * (panel_h + 3.6) + 1.2), layout="constrained")
     grid = fig.add_gridspec(2 * len(models), n_panels, height_ratios=[panel_h, 3.0] * len(models))
     norm = Normalize(0.0, 1.0)
     image, legend = None, {}
@@ -268,11 +266,17 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
             fontsize="small",
         )
         legend.update(zip(*reversed(time_ax.get_legend_handles_labels())))
-    fig.legend(list(legend.values()), list(legend), loc="outside lower center", ncol=4, fontsize=7)
+    fig.legend(
+        list(legend.values()),
+        list(legend),
+        loc="outside lower center",
+        ncol=max(2, min(4, int(width // 3.5))),
+        fontsize=7,
+    )
     if image is not None:
         fig.colorbar(image, ax=fig.axes[:n_panels], shrink=0.8, label="verified rate")
     fig.suptitle(
-        f"{title}: verified rate (holds among seeds inside Ξ) and time, ours beside the paper's"
+        f"{title}\nverified rate (holds among seeds inside Ξ) and time, ours beside the paper's"
     )
     return fig
 
