@@ -24,8 +24,10 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
+from torch.fx._symbolic_trace import is_fx_symbolic_tracing
+
+from kpstudy.verify.ops import cell_pool
 
 
 class PoolParams(NamedTuple):
@@ -127,8 +129,8 @@ def cell_bounds(index, params: PoolParams, size) -> tuple[int, int]:
 class CellAvgPool2d(nn.Module):
     """Average of the real pixels of each cell of one heatmap channel (exactly linear).
 
-    ``forward`` is three explicit linear steps, kept apart so that a bound rule can reuse
-    them: ``F.pad(x, pad)`` (zeros), ``F.avg_pool2d(kernel_size, stride)``, ``* scale``.
+    ``forward`` is :func:`kpstudy.verify.ops.cell_pool`: ``F.pad(x, pad)`` (zeros),
+    ``F.avg_pool2d(kernel_size)``, ``* scale``; the verifier traces it as that function.
 
     Parameters
     ----------
@@ -179,9 +181,7 @@ class CellAvgPool2d(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Pool ``x`` of shape ``(B, 1, H, W)`` or ``(B, H, W)`` into cell averages."""
         self._check_input(x)
-        y = F.pad(x, self.pad)
-        y = F.avg_pool2d(y, self.kernel_size, self.stride)
-        return y * self.scale.to(y.dtype)
+        return cell_pool(x, self.pad, self.kernel_size, self.scale)
 
     def extra_repr(self) -> str:
         return (
@@ -190,7 +190,7 @@ class CellAvgPool2d(nn.Module):
         )
 
     def _check_input(self, x) -> None:
-        if torch.jit.is_tracing():  # shapes are fixed by the example input when tracing
+        if torch.jit.is_tracing() or is_fx_symbolic_tracing():  # shapes fixed by the example
             return
         hw = (self.size_v, self.size_h)
         expected = f"(B, 1, {hw[0]}, {hw[1]}) or (B, {hw[0]}, {hw[1]})"

@@ -62,7 +62,7 @@ def test_crown_from_an_inner_node_equals_crown_on_the_truncated_network():
             _, state = B.propagate(graph, region)
             results.append(
                 [
-                    B._backward(graph, region, state, *rows, start=start)
+                    B.backward(graph, region, state, *rows, start=start)
                     for rows in ((pick, none), (none, pick))
                 ]
             )

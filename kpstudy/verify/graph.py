@@ -1,9 +1,11 @@
 """Trace a torch model into a graph of supported operators (torch.fx).
 
 Supported: ``Conv2d``, ``ConvTranspose2d``, ``BatchNorm2d`` (eval), ``ReLU``,
-``AvgPool2d``, the proxy's :class:`~kpstudy.pooling.CellAvgPool2d`, ``MaxPool2d``,
-``Linear``, ``Flatten``/``flatten``, residual ``+``, ``torch.cat``, slicing that keeps the
-batch dimension, ``Identity`` and ``Dropout`` (eval). Anything else is refused with an
+``AvgPool2d``, the cell pool :func:`kpstudy.verify.ops.cell_pool` (which the proxy's
+:class:`~kpstudy.pooling.CellAvgPool2d` calls), ``MaxPool2d``, ``Linear``,
+``Flatten``/``flatten``, residual ``+``, ``torch.cat``, slicing that keeps the batch
+dimension, ``Identity`` and ``Dropout`` (eval); more modules through :data:`MODULES`
+(see :mod:`kpstudy.verify.operators`, "Adding a layer"). Anything else is refused with an
 error naming the operation and the node. A batch norm that alone follows a convolution
 is folded into it (one node, named ``conv+bn``), unless the graph is traced
 ``differentiable``: then every operator keeps the model's own modules and the affine
@@ -13,6 +15,7 @@ offsets are computed from them at each use, so bounds carry gradients to every p
 
 from __future__ import annotations
 
+import functools
 import operator
 from dataclasses import dataclass
 
@@ -21,16 +24,15 @@ import torch.nn.functional as F
 from torch import fx, nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from kpstudy.pooling import CellAvgPool2d
-from kpstudy.verify import ops
+from kpstudy.verify import operators, ops
 
-_MODULES = {
+#: Module type → its graph operator (the module is not traced into).
+MODULES = {
     nn.Conv2d: ops.Conv,
     nn.ConvTranspose2d: ops.ConvTranspose,
     nn.Linear: ops.Dense,
     nn.BatchNorm2d: ops.BatchNorm,
     nn.AvgPool2d: ops.Pool,
-    CellAvgPool2d: ops.Pool,
     nn.MaxPool2d: ops.MaxPool,
     nn.ReLU: lambda m: ops.ReLU(),
     nn.Flatten: lambda m: ops.Flatten(m.start_dim, m.end_dim),
@@ -46,8 +48,11 @@ def _eval_identity(m: nn.Module) -> ops.Identity:
 
 
 class _Tracer(fx.Tracer):
+    def __init__(self) -> None:
+        super().__init__(autowrap_functions=(ops.cell_pool,))  # one node, not traced into
+
     def is_leaf_module(self, m: nn.Module, qualname: str) -> bool:
-        return type(m) in _MODULES or super().is_leaf_module(m, qualname)
+        return type(m) in MODULES or super().is_leaf_module(m, qualname)
 
 
 @dataclass
@@ -119,6 +124,7 @@ def trace(model: nn.Module, example: torch.Tensor, *, differentiable: bool = Fal
     except Exception as exc:  # data-dependent control flow, unsupported Python
         raise ValueError(f"model: could not be traced with torch.fx ({exc})") from exc
     modules = dict(gm.named_modules())
+    constants: dict[str, torch.Tensor] = {}  # get_attr nodes: buffers read in a forward
     index: dict[str, int] = {}
     nodes: list[Node] = []
     dtype = next((p.dtype for p in model.parameters()), example.dtype)
@@ -129,12 +135,18 @@ def trace(model: nn.Module, example: torch.Tensor, *, differentiable: bool = Fal
             index[n.name] = 0
             nodes.append(Node(n.name, None, (), tuple(example.shape[1:])))
             continue
+        if n.op == "get_attr":
+            constants[n.name] = functools.reduce(getattr, n.target.split("."), gm)
+            continue
         if n.op == "output":
             if not isinstance(n.args[0], fx.Node):
                 raise ValueError("model: expected a single output tensor")
             output = index[n.args[0].name]
             continue
-        op, args = _operator(n, modules)
+        op, args = _operator(n, modules, constants)
+        if op.kind not in operators.RULES:
+            kind = f"operator kind {op.kind!r}"
+            raise ValueError(f"model: {kind} has no bound rules (node {n.name!r})")
         ins = tuple(index[a.name] for a in args)
         index[n.name] = len(nodes)
         nodes.append(Node(n.name, op, ins, ()))
@@ -151,12 +163,13 @@ def trace(model: nn.Module, example: torch.Tensor, *, differentiable: bool = Fal
     return Graph(nodes, dtype, differentiable)
 
 
-def _operator(n: fx.Node, modules: dict) -> tuple[ops.Op, list[fx.Node]]:
-    """The :mod:`ops` operator of an fx node, and the fx nodes it reads."""
+def _operator(n: fx.Node, modules: dict, constants: dict) -> tuple[ops.Op, list[fx.Node]]:
+    """The :mod:`ops` operator of an fx node, and the fx nodes it reads (``constants``:
+    the tensors of get_attr nodes)."""
     where = f"(node {n.name!r})"
     if n.op == "call_module":
         m = modules[n.target]
-        make = _MODULES.get(type(m))
+        make = MODULES.get(type(m))
         if make is None:
             raise ValueError(f"model: unsupported operation {type(m).__name__} {where}")
         return make(m), _tensor_args(n, 1, where)
@@ -176,6 +189,13 @@ def _operator(n: fx.Node, modules: dict) -> tuple[ops.Op, list[fx.Node]]:
             start = n.args[1] if len(n.args) > 1 else n.kwargs.get("start_dim", 0)
             end = n.args[2] if len(n.args) > 2 else n.kwargs.get("end_dim", -1)
             return ops.Flatten(start, end), _tensor_args(n, 1, where, n.args[:1])
+        if f is ops.cell_pool:
+            x, pad, kernel_size, scale = n.args
+            if n.kwargs or not isinstance(scale, fx.Node) or scale.name not in constants:
+                raise ValueError(f"model: cell_pool(x, pad, kernel_size, buffer) expected {where}")
+            return ops.CellPool(pad, kernel_size, constants[scale.name]), _tensor_args(
+                n, 1, where, [x]
+            )
         if f is operator.getitem:
             idx = n.args[1] if isinstance(n.args[1], tuple) else (n.args[1],)
             if not idx or idx[0] != slice(None) or any(isinstance(i, fx.Node) for i in idx):

@@ -1,7 +1,9 @@
-"""Bound rules of every supported operator, in one place (a new layer touches this file).
+"""The operators of a traced graph as maps; every operator's bound rules are in
+:mod:`kpstudy.verify.operators`, chosen by the operator's :attr:`Op.kind`.
 
-Affine operators (convolutions, linear, batch norm in eval, average pools, flatten,
-add, concatenation, channel slicing) give three maps:
+Affine operators (kind ``'affine'``: convolutions, linear, batch norm in eval, average
+pools, the proxy's cell pool, flatten, add, concatenation, channel slicing) give three
+maps, from which every bound method derives:
 
 * ``forward(*xs)`` — the concrete operator (with its bias);
 * ``linear(*xs)`` — its homogeneous part (no bias), used for coefficient stacks and,
@@ -10,9 +12,9 @@ add, concatenation, channel slicing) give three maps:
   ``mid ± rad`` goes to ``linear(mid) + bias ± abs_linear(rad)`` — that is
   ``W⁺L + W⁻U + b`` and ``W⁺U + W⁻L + b``, sound for every affine function in between.
 
-Nonlinear operators (ReLU, max pooling) carry their relaxations in
-:mod:`kpstudy.verify.bounds`. All maps act on a leading batch dimension that the
-bound engine uses for (node, coefficient) pairs, so no operator may mix the batch.
+Nonlinear operators (ReLU, max pooling) give ``forward`` only. All maps act on a leading
+batch dimension that the bound engine uses for (node, coefficient) pairs, so no operator
+may mix the batch.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ from torch import nn
 
 
 class Op:
-    """A graph operator. ``kind`` is ``'affine'``, ``'relu'`` or ``'maxpool'``."""
+    """A graph operator. ``kind`` names its bound rules in
+    :data:`kpstudy.verify.operators.RULES` (``'affine'``, ``'relu'``, ``'maxpool'``)."""
 
     kind = "affine"
     n_inputs = 1
@@ -111,13 +114,49 @@ class BatchNorm(Op):
 
 
 class Pool(Op):
-    """An average pool (``nn.AvgPool2d`` or the proxy's cell pool): linear, weights >= 0."""
+    """``nn.AvgPool2d``: linear, weights >= 0."""
 
     def __init__(self, m: nn.Module):
         self.m = m
 
     def forward(self, x):
         return self.m(x)
+
+
+def cell_pool(x: torch.Tensor, pad, kernel_size, scale: torch.Tensor) -> torch.Tensor:
+    """Average of each ``k_v × k_h`` cell of the zero-padded map, times its ``scale``.
+
+    The proxy's cell pool (:class:`kpstudy.pooling.CellAvgPool2d` calls it; the tracer
+    records a call as one :class:`CellPool` node): linear, weights >= 0.
+
+    Parameters
+    ----------
+    x : Tensor, shape (B, C, H, W) or (B, H, W)
+    pad : (int, int, int, int)
+        ``(left, right, top, bottom)`` zeros, as :func:`torch.nn.functional.pad` takes it;
+        the padded map is a whole number of cells.
+    kernel_size : (int, int)
+        ``(k_v, k_h)``, the cell and its stride.
+    scale : Tensor, shape (n_v, n_h)
+        Per cell (``kernel area / real pixels`` for the proxy); cast to ``x``'s dtype.
+
+    Returns
+    -------
+    Tensor, shape (B, C, n_v, n_h) or (B, n_v, n_h)
+    """
+    y = F.avg_pool2d(F.pad(x, pad), kernel_size)
+    return y * scale.to(y.dtype)
+
+
+class CellPool(Op):
+    """:func:`cell_pool` with fixed ``pad``, ``kernel_size``, ``scale (n_v, n_h)``."""
+
+    def __init__(self, pad, kernel_size, scale: torch.Tensor):
+        self.pad, self.kernel_size, self.scale = tuple(pad), tuple(kernel_size), scale
+        self.n_v, self.n_h = scale.shape
+
+    def forward(self, x):
+        return cell_pool(x, self.pad, self.kernel_size, self.scale)
 
 
 class Flatten(Op):
@@ -164,7 +203,8 @@ class ReLU(Op):
 
 
 class MaxPool(Op):
-    """``nn.MaxPool2d`` (no dilation, no ceil mode); windows are read with ``F.unfold``."""
+    """``nn.MaxPool2d`` (no dilation, no ceil mode): ``kernel``, ``stride``, ``padding``
+    as ``(h, w)`` pairs."""
 
     kind = "maxpool"
 
@@ -181,15 +221,3 @@ class MaxPool(Op):
 
     def forward(self, x):
         return self.m(x)
-
-    def windows(self, x, fill: float):
-        """``x (N, C, H, W)`` → windows ``(N, C, k_h·k_w, H_out·W_out)``, padding = ``fill``."""
-        ph, pw = self.padding
-        x = F.pad(x, (pw, pw, ph, ph), value=fill)
-        N, C = x.shape[:2]
-        cols = F.unfold(x, self.kernel, stride=self.stride)
-        return cols.reshape(N, C, self.kernel[0] * self.kernel[1], -1)
-
-    def out_size(self, h: int, w: int) -> tuple[int, int]:
-        (kh, kw), (sh, sw), (ph, pw) = self.kernel, self.stride, self.padding
-        return (h + 2 * ph - kh) // sh + 1, (w + 2 * pw - kw) // sw + 1

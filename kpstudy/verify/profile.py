@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from kpstudy.verify import bounds as _bounds
+from kpstudy.verify import operators
 from kpstudy.verify.graph import Graph, trace
 
 PROFILE_METHODS = ("ibp", "forward", "zonotope")
@@ -95,17 +96,16 @@ def bound_profile(
     region = _bounds.root_region(input_set, graph.dtype)
     if method == "ibp":
         region = region.to_interval()
-    low_b: dict[int, torch.Tensor] = {}
-    high_b: dict[int, torch.Tensor] = {}
+    low_b, high_b = ({0: b[0]} for b in region.bounds())  # node → bounds (*shape)
 
     q = region.mid.shape[1]
 
     def keep(i, mid, rad):
-        low, high = _bounds._interval(mid, rad, q, region.domain)
+        low, high = operators.interval(mid, rad, q, region.domain)
         low_b[i], high_b[i] = low[0], high[0]
 
     with torch.no_grad():
-        _, state = _bounds.propagate(graph, region, keep, zonotope=method == "zonotope")
+        _, saved = _bounds.propagate(graph, region, keep, zonotope=method == "zonotope")
     g = torch.Generator().manual_seed(seed)
     rows = []
     for i, node in enumerate(graph.nodes[1:], start=1):
@@ -125,18 +125,17 @@ def bound_profile(
             "ratio_median": _median_ratio(hi - lo, width_s, varying),
             "contained": bool(((s_lo >= lo - noise) & (s_hi <= hi + noise)).all()),
         }
-        if node.op.kind == "relu":
-            j = node.inputs[0]
-            row["unstable_bound"] = int(((low_b[j] < 0) & (high_b[j] > 0)).sum())
-            row["unstable_sampled"] = int(((low_s[j] < 0) & (high_s[j] > 0)).sum())
-        elif node.op.kind == "affine" and crown_rows and row["varying"]:
+        rule = operators.rules(node.op.kind)
+        j = node.inputs[0]
+        row.update(rule.profile(low_b[j], high_b[j], low_s[j], high_s[j]))
+        if isinstance(rule, operators.Affine) and crown_rows and row["varying"]:
             where = torch.nonzero(varying.flatten()).flatten()
             pick = where[torch.randperm(len(where), generator=g)[:crown_rows]]
             none = torch.full_like(pick, -1)
             start = time.perf_counter()
             with torch.no_grad():
-                c_lo = _bounds._backward(graph, region, state, pick, none, start=i)[0]
-                c_hi = -_bounds._backward(graph, region, state, none, pick, start=i)[0]
+                c_lo = _bounds.backward(graph, region, saved, pick, none, start=i)[0]
+                c_hi = -_bounds.backward(graph, region, saved, none, pick, start=i)[0]
             c_lo = torch.maximum(c_lo, lo.flatten()[pick])
             c_hi = torch.minimum(c_hi, hi.flatten()[pick])
             sub_lo, sub_hi = s_lo.flatten()[pick], s_hi.flatten()[pick]
@@ -156,8 +155,8 @@ def _sampled_ranges(graph: Graph, images: torch.Tensor, chunk: int):
         for part in images.split(chunk):
             values = [part] + [None] * (len(graph.nodes) - 1)
             remaining = [len(c) for c in graph.consumers]
-            for i, node in enumerate(graph.nodes[1:], start=1):
-                v = values[i] = node.op.forward(*(values[j] for j in node.inputs))
+            for i, node in enumerate(graph.nodes):
+                v = values[i] = node.op.forward(*(values[j] for j in node.inputs)) if i else part
                 lo, hi = v.min(0).values, v.max(0).values
                 low[i] = lo if low[i] is None else torch.minimum(low[i], lo)
                 high[i] = hi if high[i] is None else torch.maximum(high[i], hi)

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from kpstudy.pooling import CellAvgPool2d
 from kpstudy.verify import ops
 
 #: Tiles per side in which one ReLU's new symbols are grouped.
@@ -63,12 +62,6 @@ def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
             i == slice(None) for i in idx[2:]
         )
     return False
-
-
-def is_cell_pool(op: ops.Op) -> bool:
-    """Whether ``op`` is the proxy's cell pool with cells as wide as their stride."""
-    m = getattr(op, "m", None)
-    return isinstance(op, ops.Pool) and isinstance(m, CellAvgPool2d) and m.kernel_size == m.stride
 
 
 def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
@@ -127,9 +120,9 @@ def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     return assemble((mid.shape[0], rows, *mid.shape[2:]), mid, parts)
 
 
-def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: int):
-    """The dense stack ``(B, rows, 1, n_v, n_h)`` of the cell pool ``m`` of a value held
-    as ``θ`` rows ``mid (B, q, 1, H, W)`` and symbol ``blocks`` (:func:`is_cell_pool`).
+def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: int):
+    """The dense stack ``(B, rows, 1, n_v, n_h)`` of the cell pool ``op`` of a value held
+    as ``θ`` rows ``mid (B, q, 1, H, W)`` and symbol ``blocks``.
 
     A cell is a ``k_v × k_h`` window of the padded map, so each block is padded to whole
     cells (a few pixels) and pooled on its own; the ``(B, rows, 1, H, W)`` stack that
@@ -138,11 +131,11 @@ def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: in
     parts = [
         (
             (slice(None), slice(0, q)),
-            m(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, m.n_v, m.n_h),
+            op.forward(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, op.n_v, op.n_h),
         )
     ]
-    (kv, kh), (left, _, top, _) = m.kernel_size, m.pad
-    scale = m.scale.to(mid.dtype)
+    (kv, kh), (left, _, top, _) = op.kernel_size, op.pad
+    scale = op.scale.to(mid.dtype)
     for b in blocks:
         r, (h, w) = b.rows, b.coeff.shape[-2:]
         y, x = b.y + top, b.x + left  # the window in the padded map
@@ -158,7 +151,7 @@ def cell_pool(m: CellAvgPool2d, mid: torch.Tensor, blocks: list[Block], rows: in
             slice(d0, d1),
         )
         parts.append((window, pooled.reshape(B, r, 1, c1 - c0, d1 - d0)))
-    return assemble((B, rows, 1, m.n_v, m.n_h), mid, parts)
+    return assemble((B, rows, 1, op.n_v, op.n_h), mid, parts)
 
 
 def make(mu: torch.Tensor, start: int) -> list[Block]:

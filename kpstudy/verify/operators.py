@@ -1,0 +1,432 @@
+"""The bound rules of each operator kind, one class per kind, found through :data:`RULES`.
+
+:func:`kpstudy.verify.bounds.propagate` and :func:`~kpstudy.verify.bounds.backward` look
+up ``RULES[node.op.kind]`` (:func:`rules`) for every node of a traced graph and call:
+
+``forward(p, i, ins)``
+    Bounds of node ``i`` from its inputs' values, as coefficient stacks in ``θ``
+    (methods ``'ibp'`` and ``'forward'``; ``'ibp'`` is this rule on an interval region,
+    ``q = 1``, so interval arithmetic needs no rule of its own).
+``zonotope(p, i, ins)``
+    The same with error symbols (method ``'zonotope'``); by default ``forward`` with the
+    inputs' symbols moved into their radius (sound, but what they share is lost).
+``backward(graph, i, a, saved)``
+    CROWN: a linear lower bound ``a · y_i`` pulled back to the inputs of node ``i``, from
+    what ``forward``/``zonotope`` saved for it (``p.saved[i]``): the input coefficients
+    and the constant it adds.
+``profile(low, high, low_s, high_s)``
+    Extra columns of :func:`kpstudy.verify.profile.bound_profile` from the input's
+    bounds and sampled range (the ReLU: unstable neurons).
+
+A value is ``(mid, rad, blocks)``: coefficient stacks ``mid (B, rows, *S)``, ``rad (B,
+q, *S)`` (lower ``mid − rad``, upper ``mid + rad``, row 0 the constant, rows ``1 … q−1``
+the ``θ`` coefficients, rows from ``q`` on error symbols), and, inside a zonotope pass,
+``blocks`` (a list of :class:`kpstudy.verify.symbols.Block`) holding the symbols while
+``mid`` holds the ``θ`` rows only; ``blocks`` is ``None`` when ``mid`` is dense.
+Affine operators (:mod:`kpstudy.verify.ops`) share one rule, :class:`Affine`, derived
+from their three maps.
+
+Adding a layer
+--------------
+1. The operator: an :class:`kpstudy.verify.ops.Op` with its concrete ``forward`` and a
+   ``kind``. An affine layer gives ``linear``/``abs_linear`` too, keeps
+   ``kind = 'affine'``, and is done after step 3.
+2. Its rules: a :class:`Rules` subclass with ``forward`` and ``backward`` (and
+   ``zonotope``, ``profile`` where the defaults do not fit), registered as
+   ``RULES[kind] = MyRules()``. Every bound must contain every value the layer takes on
+   the region; the tests check it against samples.
+3. Tracing: ``kpstudy.verify.graph.MODULES[MyModule] = lambda m: MyOp(...)`` (or a case
+   in ``graph._operator`` for a function).
+
+For example, a leaky ReLU ``y = max(x, c·x)`` (``0 ≤ c ≤ 1``) between bounds ``l, u`` is
+the identity where ``l ≥ 0``, ``c·x`` where ``u ≤ 0`` and otherwise lies between the
+line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = (c − s)·l``)::
+
+    class LeakyReLU(ops.Op):
+        kind = "leaky_relu"
+        def __init__(self, c): self.c = c
+        def forward(self, x): return F.leaky_relu(x, self.c)
+
+    class LeakyReLURules(Rules):
+        def forward(self, p, i, ins):
+            mid, rad, _ = ins[0]
+            low, up = mid - rad, mid + rad
+            l, u = domain_min(low, p.domain), -domain_min(-up, p.domain)
+            c = p.graph.nodes[i].op.c
+            lo_slope = torch.where(l >= 0, 1.0, torch.full_like(l, c))
+            s = torch.where(u <= 0, c, (u - c * l) / (u - l).clamp_min(1e-30))
+            s = torch.where(l >= 0, 1.0, s)
+            t = (c - s) * l.clamp_max(0)  # 0 where stable
+            p.saved[i] = (lo_slope, s, t)
+            new_low, new_up = lo_slope[:, None] * low, s[:, None] * up
+            new_up[:, 0] += t
+            return (new_up + new_low) / 2, (new_up - new_low) / 2, None
+        def backward(self, graph, i, a, saved):
+            lo_slope, s, t = saved
+            a_pos, a_neg = a.clamp_min(0), a.clamp_max(0)
+            const = (a_neg * t[:, None]).flatten(2).sum(-1)
+            return [a_pos * lo_slope[:, None] + a_neg * s[:, None]], const
+
+    RULES["leaky_relu"] = LeakyReLURules()
+    graph.MODULES[nn.LeakyReLU] = lambda m: LeakyReLU(m.negative_slope)
+
+``tests/test_verify_operators.py`` runs this example through every method.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from kpstudy.verify import ops, symbols
+
+
+def domain_min(a: torch.Tensor, domain: str) -> torch.Tensor:
+    """Exact minimum over ``θ`` of ``a[:, 0] + Σ_i a[:, i] θ_i`` for ``a (B, q, …)``."""
+    if a.shape[1] == 1 or domain == "point":
+        return a[:, 0]
+    rest = a[:, 1:]
+    if domain == "simplex":
+        return a[:, 0] + rest.min(1).values.clamp_max(0.0)
+    if domain == "cube":
+        return a[:, 0] + rest.clamp_max(0.0).sum(1)
+    raise ValueError(f"domain: expected 'simplex', 'cube' or 'point', got {domain!r}")
+
+
+def symbol_reach(a: torch.Tensor, q: int):
+    """``Σ_e |a[:, q + e]|``: how far the error symbols move each entry (0 without any)."""
+    return symbols.l1_rows(a[:, q:]) if a.shape[1] > q else 0.0
+
+
+def interval(mid, rad, q, domain):
+    """Concrete lower and upper bounds ``(B, *S)`` of a dense value ``mid (B, q + E, *S)``,
+    ``rad (B, q, *S)``."""
+    reach = symbol_reach(mid, q)  # the same either way
+    low = domain_min(mid[:, :q] - rad, domain) - reach
+    high = -domain_min(-mid[:, :q] - rad, domain) + reach
+    return low, high
+
+
+class Pass:
+    """One forward pass of ``B`` regions through ``graph``: what the rules share.
+
+    Attributes
+    ----------
+    graph : Graph
+    q : int
+        ``θ`` rows (1 for an interval region).
+    domain : str
+        ``'simplex'``, ``'cube'`` or ``'point'``.
+    max_generators : int
+        Error symbols a zonotope may make in all.
+    made : int
+        Rows of the dense stack in use: the ``θ`` rows, then every symbol made so far (in
+        any branch), so that a new symbol never shares a number.
+    saved : dict
+        Node index → what its ``backward`` rule needs.
+    """
+
+    def __init__(self, graph, q: int, domain: str, max_generators: int) -> None:
+        self.graph, self.q, self.domain = graph, q, domain
+        self.max_generators = max_generators
+        self.made = q
+        self.saved: dict[int, tuple] = {}
+
+    def dense(self, value) -> torch.Tensor:
+        """The dense stack ``(B, rows, *S)`` of a value."""
+        mid, _, blocks = value
+        return mid if blocks is None else symbols.dense(mid, blocks, self.made)
+
+
+class Rules:
+    """The bound rules of one operator kind (see the module docstring)."""
+
+    #: Whether the zonotope makes up to one error symbol per neuron of such a node.
+    makes_symbols = False
+
+    def forward(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
+        raise NotImplementedError
+
+    def zonotope(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
+        """``forward`` with each input's error symbols moved into its radius (sound; what
+        the symbols share is lost at this node)."""
+        return self.forward(p, i, [_without_symbols(p, v) for v in ins])
+
+    def backward(self, graph, i: int, a: torch.Tensor, saved) -> tuple[list, torch.Tensor]:
+        """``a (B, r, *S_i)`` → one coefficient tensor per input and the constant
+        ``(B, r)`` of the pulled-back lower bound."""
+        raise NotImplementedError
+
+    def profile(self, low, high, low_s, high_s) -> dict:
+        return {}
+
+
+class Affine(Rules):
+    """Every affine operator, from its maps (:mod:`kpstudy.verify.ops`): exact."""
+
+    def forward(self, p, i, ins):
+        node = p.graph.nodes[i]
+        op = node.op
+        in_shapes = [p.graph.nodes[j].shape for j in node.inputs]
+        B = ins[0][0].shape[0]
+        local = all(v[2] is not None for v in ins) and symbols.is_local(op, in_shapes, node.shape)
+        if ins[0][2] is not None and isinstance(op, ops.CellPool):
+            mid = symbols.cell_pool(op, ins[0][0], ins[0][2], p.made)
+        else:
+            mids = [v[0] for v in ins] if local else [p.dense(v) for v in ins]
+            rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0
+            mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
+        rad = _apply(op.abs_linear, [v[1] for v in ins], B, p.q)
+        mid = _add_offset(mid, p.graph.offset(i)[0])
+        blocks = None
+        if local and len(ins) == 1:
+            blocks = symbols.apply(op, ins[0][2], node.shape)
+        elif local:
+            blocks = symbols.combine(op, [v[2] for v in ins], in_shapes)
+        return mid, rad, blocks
+
+    zonotope = forward  # blocks pass through convolutions and the cell pool
+
+    def backward(self, graph, i, a, saved):
+        node = graph.nodes[i]
+        B, r = a.shape[:2]
+        const = (a * graph.offset(i)[None]).flatten(2).sum(-1)
+        grads = _vjp(node.op.linear, [graph.nodes[j].shape for j in node.inputs], a, B * r)
+        return grads, const
+
+
+class ReLU(Rules):
+    """``forward``: the triangle relaxation (lower slope 0 or 1, whichever leaves the
+    smaller area; upper the chord). ``zonotope``: DeepZ, ``s·x + μ + μ·ε`` with one new
+    symbol ``ε`` per unstable neuron (``s = u/(u − l)``, ``μ = −s·l/2``); past
+    ``max_generators`` symbols the smallest ``μ`` go to the radius."""
+
+    makes_symbols = True
+
+    def forward(self, p, i, ins):
+        mid, rad, _ = ins[0]
+        low, up = mid - rad, mid + rad
+        l = domain_min(low, p.domain)
+        u = -domain_min(-up, p.domain)
+        active, dead = l >= 0, u <= 0
+        unstable = ~(active | dead)
+        s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(mid.dtype))
+        # The lower line: slope 1 or 0, whichever leaves the smaller area. An interval has
+        # no θ to carry, so there it is 0: max(l, 0), textbook interval arithmetic.
+        steep = (u > -l) if mid.shape[1] > 1 else torch.zeros_like(unstable)
+        alpha = torch.where(unstable, steep.to(mid.dtype), active.to(mid.dtype))
+        offset = torch.where(unstable, -s * l, torch.zeros_like(l))  # upper: s·z − s·l
+        p.saved[i] = (alpha, s, offset)
+        new_low, new_up = alpha[:, None] * low, s[:, None] * up
+        new_up[:, 0] += offset
+        return (new_up + new_low) / 2, (new_up - new_low) / 2, None
+
+    def zonotope(self, p, i, ins):
+        if ins[0][2] is not None:
+            return self._blocks(p, i, *ins[0])
+        mid = _pad_rows(ins[0][0], p.made)  # new symbols are numbered after all others
+        value = self._dense(p, i, mid, ins[0][1])
+        p.made = value[0].shape[1]
+        return value
+
+    def backward(self, graph, i, a, saved):
+        alpha, s, offset = saved
+        a_pos, a_neg = a.clamp_min(0), a.clamp_max(0)
+        const = (a_neg * offset[:, None]).flatten(2).sum(-1)
+        return [a_pos * alpha[:, None] + a_neg * s[:, None]], const
+
+    def profile(self, low, high, low_s, high_s):
+        return {
+            "unstable_bound": int(((low < 0) & (high > 0)).sum()),
+            "unstable_sampled": int(((low_s < 0) & (high_s > 0)).sum()),
+        }
+
+    @staticmethod
+    def _deepz(p, i, l, u):
+        """DeepZ's slope ``s`` and offset ``μ`` (``0`` where stable) for pre-activation
+        bounds ``l, u``; saves the triangle relaxation for a backward pass."""
+        active, dead = l >= 0, u <= 0
+        unstable = ~(active | dead)
+        s = torch.where(unstable, u / (u - l).clamp_min(1e-30), active.to(l.dtype))
+        mu = torch.where(unstable, -s * l / 2, torch.zeros_like(l))
+        alpha = torch.where(unstable, (u > -l).to(l.dtype), active.to(l.dtype))
+        p.saved[i] = (alpha, s, 2 * mu)
+        return s, mu
+
+    def _dense(self, p, i, mid, rad):
+        """DeepZ on a dense stack: ``s·x + μ + μ·ε_new`` per unstable ReLU."""
+        q = p.q
+        l, u = interval(mid, rad, q, p.domain)
+        s, mu = self._deepz(p, i, l, u)
+        B, rows = mid.shape[:2]
+        flat_mu = mu.reshape(B, -1)
+        k = min(int((flat_mu > 0).sum(1).max()), max(0, p.max_generators - (rows - q)))
+        order = flat_mu.argsort(1, descending=True)[:, :k]  # the k largest μ of each region
+        out = mid.new_empty(B, rows + k, *mu.shape[1:])  # written once: the stacks are large
+        torch.mul(mid, s[:, None], out=out[:, :rows])
+        out[:, 0] += mu
+        new = out[:, rows:].view(B, k, flat_mu.shape[1])
+        new.zero_()
+        new.scatter_(2, order[:, :, None], flat_mu.gather(1, order)[:, :, None])
+        new_rad = s[:, None] * rad
+        new_rad[:, 0] += flat_mu.scatter(1, order, 0.0).reshape(mu.shape)  # the rest: radius
+        return out, new_rad, None
+
+    def _blocks(self, p, i, mid, rad, blocks):
+        """DeepZ on a value whose symbols are in blocks (:mod:`symbols`): the old symbols
+        are scaled by the slopes, the new ones grouped by tile."""
+        reach = symbols.reach(blocks, mid[:, 0])
+        l = domain_min(mid - rad, p.domain) - reach
+        u = -domain_min(-mid - rad, p.domain) + reach
+        s, mu = self._deepz(p, i, l, u)
+        B = mid.shape[0]
+        flat_mu = mu.reshape(B, -1)
+        left = max(0, p.max_generators - (p.made - p.q))
+        k = min(int((flat_mu > 0).sum(1).max()), left)
+        while True:  # the k largest μ of each region, fewer if the tiles' rows pass the budget
+            kept = torch.zeros_like(flat_mu)
+            if k > 0:
+                top = flat_mu.topk(k, 1)
+                kept.scatter_(1, top.indices, top.values)
+            new = symbols.make(kept.view_as(mu), p.made)
+            rows = sum(b.rows for b in new)
+            if rows <= left:
+                break
+            k = min(k - 1, k * left // rows)
+        new_mid = mid * s[:, None]
+        new_mid[:, 0] += mu
+        new_rad = s[:, None] * rad
+        new_rad[:, 0] += (flat_mu - kept).view_as(mu)  # the rest: radius
+        p.made += rows
+        return new_mid, new_rad, symbols.scale(blocks, s) + new
+
+
+class MaxPool(Rules):
+    """Decided windows (largest lower bound ≥ every other upper bound) pass their
+    largest-lower-bound input; undecided ones are bounded below by it and above by the
+    window's largest upper bound (with error symbols, the interval between its concrete
+    lower bound and that)."""
+
+    def forward(self, p, i, ins):
+        op = p.graph.nodes[i].op
+        mid, rad, _ = ins[0]
+        q = p.q
+        B, rows, C, H, W = mid.shape
+        l, u = interval(mid, rad, q, p.domain)
+        lw, uw = _windows(op, l, float("-inf")), _windows(op, u, float("-inf"))  # (B, C, k, L)
+        best = lw.argmax(2, keepdim=True)
+        l_best = lw.gather(2, best)
+        others = uw.scatter(2, best, float("-inf")).amax(2, keepdim=True)
+        decided = (l_best >= others)[:, :, 0]  # (B, C, L)
+        l_best = l_best[:, :, 0]
+        u_max = uw.amax(2)
+        Ho, Wo = _out_size(op, H, W)
+
+        def pick(x):
+            r = x.shape[1]
+            win = _windows(op, x.reshape(B * r, C, H, W), 0.0).reshape(B, r, C, -1, Ho * Wo)
+            return win.gather(3, best[:, None].expand(B, r, C, 1, Ho * Wo))[:, :, :, 0]
+
+        keep = decided[:, None]
+        zero = torch.zeros((), dtype=mid.dtype)
+        if rows == q:  # no symbols: keep the chosen input's lower bound linear in θ
+            low, up = pick(mid - rad), torch.where(keep, pick(mid + rad), zero)
+            up[:, 0] += torch.where(decided, zero, u_max)
+            new_mid, new_rad = (up + low) / 2, (up - low) / 2
+        else:
+            new_mid = torch.where(keep, pick(mid), zero)
+            new_rad = torch.where(keep, pick(rad), zero)
+            new_mid[:, 0] += torch.where(decided, zero, (l_best + u_max) / 2)
+            new_rad[:, 0] += torch.where(decided, zero, (u_max - l_best) / 2)
+        p.saved[i] = (best[:, :, 0], decided, torch.where(decided, zero, u_max), (H, W))
+        return new_mid.reshape(B, rows, C, Ho, Wo), new_rad.reshape(B, q, C, Ho, Wo), None
+
+    def zonotope(self, p, i, ins):
+        return self.forward(p, i, [(p.dense(ins[0]), ins[0][1], None)])
+
+    def backward(self, graph, i, a, saved):
+        """Lower ``y ≥ x[best]``; upper ``y ≤ x[best]`` where decided, else ``y ≤ max u``."""
+        op = graph.nodes[i].op
+        best, decided, u_const, (H, W) = saved
+        B, r, C = a.shape[:3]
+        a = a.flatten(3)  # (B, r, C, L)
+        a_pos, a_neg = a.clamp_min(0), a.clamp_max(0)
+        coef = a_pos + a_neg * decided[:, None]
+        const = (a_neg * u_const[:, None]).flatten(2).sum(-1)
+        # Input position of each window's chosen element, in the padded frame.
+        kw, (sh, sw), (ph, pw) = op.kernel[1], op.stride, op.padding
+        Ho, Wo = _out_size(op, H, W)
+        oy, ox = torch.meshgrid(torch.arange(Ho), torch.arange(Wo), indexing="ij")
+        iy = oy.reshape(-1) * sh + best // kw - ph
+        ix = ox.reshape(-1) * sw + best % kw - pw
+        flat = (iy * W + ix).clamp(0, H * W - 1)  # padding is never the chosen (−inf) element
+        grad = torch.zeros(B, r, C, H * W, dtype=a.dtype)
+        grad.scatter_add_(3, flat[:, None].expand(B, r, C, -1), coef)
+        return [grad.reshape(B, r, C, H, W)], const
+
+
+#: Operator kind (:attr:`kpstudy.verify.ops.Op.kind`) → its bound rules.
+RULES: dict[str, Rules] = {"affine": Affine(), "relu": ReLU(), "maxpool": MaxPool()}
+
+
+def rules(kind: str) -> Rules:
+    """The bound rules of operator ``kind``; a ValueError naming it if none are registered."""
+    try:
+        return RULES[kind]
+    except KeyError:
+        raise ValueError(f"operator kind {kind!r} has no bound rules (operators.RULES)") from None
+
+
+def _windows(op: ops.MaxPool, x, fill: float):
+    """``x (N, C, H, W)`` → windows ``(N, C, k_h·k_w, H_out·W_out)``, padding = ``fill``."""
+    ph, pw = op.padding
+    x = F.pad(x, (pw, pw, ph, ph), value=fill)
+    N, C = x.shape[:2]
+    cols = F.unfold(x, op.kernel, stride=op.stride)
+    return cols.reshape(N, C, op.kernel[0] * op.kernel[1], -1)
+
+
+def _out_size(op: ops.MaxPool, h: int, w: int) -> tuple[int, int]:
+    (kh, kw), (sh, sw), (ph, pw) = op.kernel, op.stride, op.padding
+    return (h + 2 * ph - kh) // sh + 1, (w + 2 * pw - kw) // sw + 1
+
+
+def _without_symbols(p: Pass, value) -> tuple:
+    """A value's ``θ`` rows, its symbols' reach added to the radius."""
+    mid = p.dense(value)
+    rad = value[1].clone()
+    rad[:, 0] += symbol_reach(mid, p.q)
+    return mid[:, : p.q], rad, None
+
+
+def _add_offset(mid: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """``mid (B, q, *S)`` with ``offset (*S)`` added to its constant row; in place unless
+    autograd records it (``mid`` may be a view of a value an earlier layer saved)."""
+    if mid.requires_grad or offset.requires_grad:
+        return torch.cat([mid[:, :1] + offset, mid[:, 1:]], 1)
+    mid[:, 0] += offset
+    return mid
+
+
+def _pad_rows(x: torch.Tensor, rows: int) -> torch.Tensor:
+    if x.shape[1] == rows:
+        return x
+    return torch.cat([x, x.new_zeros(x.shape[0], rows - x.shape[1], *x.shape[2:])], 1)
+
+
+def _apply(f, xs: list[torch.Tensor], B: int, q: int) -> torch.Tensor:
+    y = f(*(x.reshape(B * q, *x.shape[2:]) for x in xs))
+    return y.reshape(B, q, *y.shape[1:])
+
+
+def _vjp(f, in_shapes, a: torch.Tensor, n: int) -> list[torch.Tensor]:
+    """``aᵀ J_f`` for the linear map ``f`` and each of its inputs, batched over ``(B, r)``."""
+    xs = [torch.zeros(n, *s, dtype=a.dtype, requires_grad=True) for s in in_shapes]
+    with torch.enable_grad():
+        y = f(*xs)
+        grads = torch.autograd.grad(y, xs, a.reshape(n, *y.shape[1:]), allow_unused=True)
+    lead = a.shape[:2]
+    return [
+        torch.zeros(*lead, *s, dtype=a.dtype) if g is None else g.reshape(*lead, *s)
+        for g, s in zip(grads, in_shapes)
+    ]
