@@ -430,9 +430,12 @@ def _value(part, conditions, row, col, column) -> float:
     return float(values.iloc[0]) if len(values) else np.nan
 
 
-def save_comparison(table_csv, png, title: str | None = None, hardware: str | None = None):
+def save_comparison(
+    table_csv, png, title: str | None = None, hardware: str | None = None, dpi: int = 130
+):
     """Draw :func:`plot_comparison` of the table ``table_csv`` (a ``tables/*.csv`` of a
-    results folder) to ``png``; ``title`` defaults to the file's stem. Returns the path."""
+    results folder) to ``png`` at ``dpi``; ``title`` defaults to the file's stem. Returns
+    the path."""
     from pathlib import Path
 
     from kpstudy.io import save_figure
@@ -441,4 +444,4 @@ def save_comparison(table_csv, png, title: str | None = None, hardware: str | No
     if not table_csv.is_file():
         raise ValueError(f"table_csv: expected a table's CSV file, got {str(table_csv)!r}")
     fig = plot_comparison(pd.read_csv(table_csv), title or table_csv.stem, hardware)
-    return save_figure(fig, png)
+    return save_figure(fig, png, dpi=dpi)

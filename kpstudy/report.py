@@ -20,7 +20,7 @@ import pandas as pd
 from kpstudy.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
 from kpstudy.io import write_text_atomic
 from kpstudy.tables import reading_comparison
-from kpstudy.trends import statement_lines
+from kpstudy.trends import trend_table
 
 __all__ = [
     "COMPARED",
@@ -28,6 +28,7 @@ __all__ = [
     "campaign_summary",
     "compact_markdown",
     "t_prob_readings",
+    "trend_markdown",
     "trend_readings",
     "write_report",
 ]
@@ -132,7 +133,9 @@ def write_report(out, profile: dict | None = None) -> Path:
                 lines += [md.read_text().rstrip(), ""]
             if name in readers:
                 text = readers[name](table)
+                trends = trend_markdown(trend_readings(name, table))
                 lines += ["**Reading.**", "", *[f"- {t}" for t in text], ""]
+                lines += [trends, ""] if trends else []
         for picture in pictures:
             if picture in COMPARED and picture in names:
                 continue  # drawn above, with its compact table
@@ -208,14 +211,44 @@ def _sec(value) -> str:
     return "–" if pd.isna(value) else f"{value:.3g}"
 
 
-def trend_readings(table: pd.DataFrame) -> list[str]:
-    """One sentence per trend the paper states (:data:`kpstudy.trends.STATEMENTS`) that
-    the verification ``table`` can test: the paper's numbers on our cells, then ours per
-    model and method (:func:`kpstudy.comparison.method_cells`)."""
+def trend_readings(name: str, table: pd.DataFrame) -> pd.DataFrame:
+    """The trends the paper states (:data:`kpstudy.trends.STATEMENTS`) that table
+    ``name`` can test (:func:`kpstudy.trends.trend_table`): for T-prob per tolerance
+    reading; for a verification table per model and method
+    (:func:`kpstudy.comparison.method_cells`)."""
+    if name == "t_prob":
+        series = ["tolerance_units"] if "tolerance_units" in table else []
+        reading = (lambda v: f"ours, '{v[0]}' reading") if series else None
+        return trend_table(table, ["kappa", "alpha"], series, label=reading)
     cells = method_cells(table)
     keys = [*(c for c in CONDITIONS if c in cells), *GRID_COLUMNS]
     series = ["model", "method"] if cells["model"].astype(bool).any() else ["method"]
-    return statement_lines(cells, keys, series)
+    return trend_table(cells, keys, series)
+
+
+def trend_markdown(trends: pd.DataFrame) -> str:
+    """:func:`trend_readings` as a Markdown table, with a line saying how to read it."""
+    if trends.empty or not len(trends.columns):
+        return ""
+    head = "| | " + " | ".join(f"*{c}*" for c in trends.columns) + " |"
+    rule = "|---|" + "---|" * len(trends.columns)
+    rows = [
+        f"| {label} | " + " | ".join(str(v) for v in row) + " |"
+        for label, row in zip(trends.index, trends.itertuples(index=False))
+    ]
+    return "\n".join(
+        [
+            "The trends the paper states, tested on the numbers: per pair of cells that "
+            "differ only in that axis (its smallest value against its largest), how many "
+            "move as the paper states, against it, or not at all, and the mean change; "
+            "*yes* when some pairs move as stated and none against, *mostly* when more do "
+            "than not.",
+            "",
+            head,
+            rule,
+            *rows,
+        ]
+    )
 
 
 def _per_group(read, compare: tuple[str, str, str] | None = None):
@@ -244,11 +277,10 @@ def _per_group(read, compare: tuple[str, str, str] | None = None):
 
 
 def t_prob_readings(table: pd.DataFrame) -> list[str]:
-    """Does soundness rise with κ and fall with α; does completeness do the opposite?
-    Per tolerance reading, after the sentence comparing the readings with the paper."""
-    lines = _per_group(_t_prob, ("soundness", "paper_soundness", "Soundness"))(table)
-    series = ["tolerance_units"] if "tolerance_units" in table else []
-    return lines + statement_lines(table, ["kappa", "alpha"], series)
+    """Soundness and completeness against the paper's, per tolerance reading, after the
+    sentence comparing the readings with the paper (whether soundness rises with κ:
+    :func:`trend_readings`)."""
+    return _per_group(_t_prob, ("soundness", "paper_soundness", "Soundness"))(table)
 
 
 def _t_prob(table: pd.DataFrame) -> list[str]:
@@ -338,5 +370,5 @@ _RATE = ("verified_rate", "paper_rate", "Verified rate (allocation method)")
 
 def _campaign(table: pd.DataFrame) -> list[str]:
     """Per model, the readings' comparison with the paper; per model and reading, the
-    counts; then the paper's trends, per model and method."""
-    return _per_group(campaign_summary, _RATE)(table) + trend_readings(table)
+    counts (the paper's trends follow in a table, :func:`trend_readings`)."""
+    return _per_group(campaign_summary, _RATE)(table)

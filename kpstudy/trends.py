@@ -5,8 +5,8 @@ fixed: "the verified rate rises with α", "the time falls with α", "overlapping
 more", "soundness rises with κ" (:data:`STATEMENTS`). :func:`trend` pairs the cells that
 differ only in that axis (its smallest value against its largest) and counts the pairs
 that move along the statement, against it, or not at all; :func:`verdict` turns the
-counts into a word and :func:`statement_lines` into one sentence per statement, for ours
-and, on the same pairs, for the paper's numbers. Nothing here is written by hand: a
+counts into a word, and :func:`trend_table` tests every statement for the paper's
+numbers and, on the same pairs, for ours. Nothing here is written by hand: a
 sentence says what the counts say.
 """
 
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-__all__ = ["STATEMENTS", "Statement", "Trend", "statement_lines", "trend", "verdict"]
+__all__ = ["STATEMENTS", "Statement", "Trend", "describe", "trend", "trend_table", "verdict"]
 
 
 @dataclass(frozen=True)
@@ -138,53 +138,79 @@ def verdict(t: Trend) -> str:
     return "no"
 
 
-def _describe(t: Trend, unit: str) -> str:
+def describe(t: Trend, unit: str = "rate") -> str:
+    """A short account of ``t``: the verdict, how many pairs of how many moved as stated
+    (and how many against, how many not at all) and the mean change (``unit``
+    ``'rate'``: in percentage points, else seconds)."""
     if t.pairs == 0:
-        return "cannot tell (no pair of cells differing only in this axis)"
-    change = f"{t.mean_change:+.0%}" if unit == "rate" else f"{t.mean_change:+.3g} s"
-    return (
-        f"{verdict(t)} ({t.along} of {t.pairs} pairs along, {t.against} against, "
-        f"{t.flat} unchanged; mean change {change})"
-    )
+        return "cannot tell: no pair"
+    counts = f"{t.along} of {t.pairs}"
+    if t.against:
+        counts += f", {t.against} against"
+    if t.flat:
+        counts += f", {t.flat} unchanged"
+    return f"{verdict(t)}: {counts} ({_change(t.mean_change, unit)})"
 
 
-def statement_lines(
+def _change(value: float, unit: str) -> str:
+    """A mean change: a rate in percentage points (2 significant digits below 10), a
+    time in seconds."""
+    if unit != "rate":
+        return f"{value:+.3g} s"
+    points = 100 * value
+    return f"{points:+.0f} pp" if abs(points) >= 10 else f"{points:+.2g} pp"
+
+
+def trend_table(
     cells: pd.DataFrame,
     keys: list[str],
     series: list[str],
     statements=STATEMENTS,
-) -> list[str]:
-    """One sentence per statement whose axis and value ``cells`` has (and whose axis
-    takes two values or more): the paper's verdict on the same pairs, then ours per
-    series.
+    label=None,
+) -> pd.DataFrame:
+    """Each statement the cells can test, for the paper's numbers and for ours per series.
 
     Parameters
     ----------
     cells : DataFrame
         One row per series and cell (e.g. :func:`kpstudy.comparison.method_cells`).
     keys : list of str
-        The columns that name a cell (the statement's axis among them).
+        The columns that name a cell (a statement's axis among them).
     series : list of str
-        The columns that name a series (e.g. ``['model', 'method']``); each is tested
-        apart.
+        The columns that name a series (e.g. ``['model', 'method']``), each tested apart;
+        empty: one series.
+    label : callable, optional
+        ``label(values) -> str``: a series' row label from its tuple of ``series`` values.
+
+    Returns
+    -------
+    DataFrame
+        Index: ``"the paper's numbers"`` (on the first series' cells) then one label per
+        series (``label(values)`` of its ``series`` values; by default joined by spaces,
+        ``"ours"`` without any);
+        columns: the statements whose axis is in ``keys`` with two values or more and
+        whose value column ``cells`` has; entries: :func:`describe`. Empty without any
+        such statement.
     """
-    lines = []
-    for s in statements:
-        if s.axis not in keys or s.value not in cells or cells[s.axis].nunique() < 2:
-            continue
+    usable = [
+        s
+        for s in statements
+        if s.axis in keys and s.value in cells and cells[s.axis].nunique() >= 2
+    ]
+    groups = list(cells.groupby(series, sort=False)) if series else [((), cells)]
+    labels = []
+    for name, _ in groups:
+        name = name if isinstance(name, tuple) else (name,)
+        labels.append(label(name) if label else " ".join(str(n) for n in name if str(n)) or "ours")
+    paper_row = "the paper's numbers"
+    table = pd.DataFrame(index=[paper_row, *labels], columns=[s.text for s in usable], dtype=object)
+    for s in usable:
         others = [k for k in keys if k != s.axis]
-        unit = "rate" if not s.relative else "time"
-        groups = list(cells.groupby(series, sort=False)) if series else [((), cells)]
-        parts = []
-        for name, part in groups:
-            name = name if isinstance(name, tuple) else (name,)
-            label = " ".join(str(n) for n in name if str(n)) or "ours"
-            t = trend(part, s.value, s.axis, others, s.sign, s.relative)
-            parts.append(f"{label}: {_describe(t, unit)}")
-        paper = ""
+        unit = "time" if s.relative else "rate"
         if s.paper and s.paper in cells and groups:
-            first = groups[0][1]
-            t = trend(first, s.paper, s.axis, others, s.sign, s.relative)
-            paper = f" The paper's numbers on the same cells: {_describe(t, unit)}."
-        lines.append(f"*{s.text}* (the paper's statement).{paper} Ours: " + "; ".join(parts) + ".")
-    return lines
+            t = trend(groups[0][1], s.paper, s.axis, others, s.sign, s.relative)
+            table.loc[paper_row, s.text] = describe(t, unit)
+        for label, (_, part) in zip(labels, groups):
+            t = trend(part, s.value, s.axis, others, s.sign, s.relative)
+            table.loc[label, s.text] = describe(t, unit)
+    return table.fillna("–")

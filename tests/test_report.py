@@ -65,42 +65,57 @@ def test_report_shows_figure_compact_table_and_links(tmp_path):
 
 def test_readings_test_the_papers_trends_on_the_numbers(tmp_path):
     table = tables.t_local(local_records())
-    lines = report.trend_readings(table)
-    by_text = {line.split("*")[1]: line for line in lines}
-    assert set(by_text) == {
+    trends_ = report.trend_readings("t_local", table)
+    assert list(trends_.columns) == [
         "Verified rate rises with α",
         "Verified rate falls with κ",
         "Time per instance falls with α",
         "Overlapping hulls cost more time",
-    }
-    rate = by_text["Verified rate rises with α"]
-    # The paper's m = 2 cells rise with α in all 4 pairs (overlap × κ).
-    assert "The paper's numbers on the same cells: yes (4 of 4 pairs along" in rate
-    # Ours: the 'heatmap' reading holds only at α = 1.5 (+100 %); the 'paper' one always.
-    assert "cnn alloc (heatmap): yes (4 of 4 pairs along, 0 against, 0 unchanged; " in rate
-    assert "mean change +100%" in rate
-    assert "cnn alloc (paper): no (0 of 4 pairs along, 0 against, 4 unchanged" in rate
-    cost = by_text["Overlapping hulls cost more time"]
-    assert "cnn pb: yes (4 of 4 pairs along" in cost  # 200 s against 50 s
-    assert "cnn alloc (paper): no (0 of 4 pairs along, 0 against, 4 unchanged" in cost
-    out = _results(tmp_path, table)
-    text = report.write_report(out).read_text()
-    assert all(line in text for line in lines)
+    ]
+    assert list(trends_.index) == [
+        "the paper's numbers",
+        *(
+            f"{model} {method}"
+            for model in ("cnn", "cnn_affine")
+            for method in ("alloc (heatmap)", "alloc (paper)", "pb")
+        ),
+    ]
+    rate = trends_["Verified rate rises with α"]
+    # The paper's m = 2 cells rise with α in all 4 pairs (overlap × κ), by 34 pp on average.
+    assert rate["the paper's numbers"] == "yes: 4 of 4 (+34 pp)"
+    # Ours: the 'heatmap' reading holds only at α = 1.5 (+100 pp); the 'paper' one always.
+    assert rate["cnn alloc (heatmap)"] == "yes: 4 of 4 (+100 pp)"
+    assert rate["cnn alloc (paper)"] == "no: 0 of 4, 4 unchanged (+0 pp)"
+    cost = trends_["Overlapping hulls cost more time"]
+    assert cost["cnn pb"] == "yes: 4 of 4 (+150 s)"  # 200 s against 50 s
+    # Refutations at α = 1 (0.1 s), proofs at α = 1.5 (30 s): time rises, against the paper.
+    assert trends_.loc["cnn alloc (heatmap)", "Time per instance falls with α"] == (
+        "no: 0 of 4, 4 against (+29.9 s)"
+    )
+    text = report.write_report(_results(tmp_path, table)).read_text()
+    assert "| | *Verified rate rises with α* | *Verified rate falls with κ* |" in text
+    assert "| cnn pb | no: 0 of 4, 4 unchanged (+0 pp) |" in text
 
 
 def test_t_prob_reading_says_whether_soundness_rises_with_kappa():
     prob = pd.DataFrame(
         {
-            "kappa": [1.0, 1.0, 2.0, 2.0],
-            "alpha": [1.0, 2.0, 1.0, 2.0],
-            "soundness": [0.9, 0.95, 0.85, 0.97],
-            "completeness": [0.1, 0.2, 0.05, 0.1],
+            "tolerance_units": ["heatmap"] * 4 + ["paper"] * 4,
+            "kappa": [1.0, 1.0, 2.0, 2.0] * 2,
+            "alpha": [1.0, 2.0] * 4,
+            "soundness": [0.9, 0.95, 0.85, 0.97, 0.9, 0.9, 0.95, 0.95],
+            "completeness": [0.1, 0.2, 0.05, 0.1] * 2,
         }
     )
-    lines = report.t_prob_readings(tables.t_prob(prob))
-    (line,) = [s for s in lines if s.startswith("*Soundness rises with κ*")]
-    assert "Ours: ours: mostly" not in line  # the series has a name only with readings
-    assert "ours: no (1 of 2 pairs along, 1 against, 0 unchanged" in line
+    trends_ = report.trend_readings("t_prob", tables.t_prob(prob))
+    assert list(trends_.columns) == ["Soundness rises with κ"]
+    column = trends_["Soundness rises with κ"]
+    # The paper: 0.998978 → 1.0 at α = 1, 0.988339 → 0.999999 at α = 2.
+    assert column["the paper's numbers"] == "yes: 2 of 2 (+0.63 pp)"
+    assert column["ours, 'heatmap' reading"] == "no: 1 of 2, 1 against (-1.5 pp)"
+    assert column["ours, 'paper' reading"] == "yes: 2 of 2 (+5 pp)"
+    single = tables.t_prob(prob[prob.tolerance_units == "paper"].drop(columns="tolerance_units"))
+    assert list(report.trend_readings("t_prob", single).index) == ["the paper's numbers", "ours"]
 
 
 def test_old_results_folders_still_render(tmp_path):
@@ -116,8 +131,7 @@ def test_old_results_folders_still_render(tmp_path):
     assert "*Figure `t_local` is missing.*" in text
     assert "| – | alloc | 16 | 8 / 8 / 0 | 8 | 50% |" in text
     assert text.split("| – | alloc |")[1].split("\n")[0].endswith("| – | – | 62.2 |")
-    assert "*Verified rate rises with α* (the paper's statement)." in text
-    assert "alloc: yes (4 of 4 pairs along" in text
+    assert "| alloc | yes: 4 of 4 (+100 pp) |" in text
     # With a figure drawn from the old table: proof times absent, all-instance times shown.
     fig = comparison.plot_comparison(pd.read_csv(out / "tables" / "t_local.csv"), "old")
     assert fig.axes
