@@ -264,6 +264,6 @@ def _infer_shapes(nodes: list[Node], example: torch.Tensor, offsets: bool = True
                     )
             y = op.forward(*xs)
             node.shape = tuple(y.shape[1:])
-            if offsets and op.kind == "affine":
+            if offsets and isinstance(operators.rules(op.kind), operators.Affine):
                 node.offset = op.forward(*(torch.zeros_like(x) for x in xs))
             values.append(y)
