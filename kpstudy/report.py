@@ -227,22 +227,23 @@ def trend_readings(name: str, table: pd.DataFrame) -> pd.DataFrame:
 
 
 def trend_markdown(trends: pd.DataFrame) -> str:
-    """:func:`trend_readings` as a Markdown table, with a line saying how to read it."""
-    if trends.empty or not len(trends.columns):
+    """:func:`trend_readings` as a Markdown table (a statement per row), with a line
+    saying how to read it; ``''`` without any statement."""
+    if trends.empty:
         return ""
-    head = "| | " + " | ".join(f"*{c}*" for c in trends.columns) + " |"
+    head = "| the paper states | " + " | ".join(trends.columns) + " |"
     rule = "|---|" + "---|" * len(trends.columns)
     rows = [
-        f"| {label} | " + " | ".join(str(v) for v in row) + " |"
-        for label, row in zip(trends.index, trends.itertuples(index=False))
+        f"| *{text}* | " + " | ".join(str(v) for v in row) + " |"
+        for text, row in zip(trends.index, trends.itertuples(index=False))
     ]
     return "\n".join(
         [
             "The trends the paper states, tested on the numbers: per pair of cells that "
             "differ only in that axis (its smallest value against its largest), how many "
             "move as the paper states, against it, or not at all, and the mean change; "
-            "*yes* when some pairs move as stated and none against, *mostly* when more do "
-            "than not.",
+            "*yes* when more than half the pairs move as stated and none against, *partly* "
+            "when more move as stated than against it.",
             "",
             head,
             rule,

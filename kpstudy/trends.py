@@ -41,10 +41,22 @@ STATEMENTS = (
     Statement("Verified rate rises with α", "rate", "alpha", +1, "paper_rate"),
     Statement("Verified rate falls with κ", "rate", "kappa", -1, "paper_rate"),
     Statement("Time per instance falls with α", "time_all", "alpha", -1, "paper_time_mean", True),
+    Statement("Time per instance rises with κ", "time_all", "kappa", +1, "paper_time_mean", True),
+    Statement("Time per instance rises with m", "time_all", "m", +1, "paper_time_mean", True),
     Statement(
         "Overlapping hulls cost more time", "time_all", "overlapping", +1, "paper_time_mean", True
     ),
+    Statement(
+        "Larger brightness / contrast changes cost more time",
+        "time_all",
+        "level",
+        +1,
+        "paper_time_mean",
+        True,
+    ),  # fmt: skip
     Statement("Soundness rises with κ", "soundness", "kappa", +1, "paper_soundness"),
+    Statement("Soundness falls with α", "soundness", "alpha", -1, "paper_soundness"),
+    Statement("Completeness falls with κ", "completeness", "kappa", -1, "paper_completeness"),
 )
 
 #: Relative change below which a time counts as unchanged.
@@ -72,7 +84,8 @@ def trend(
     sign: int,
     relative: bool = False,
 ) -> Trend:
-    """Count the pairs of ``frame``'s rows that differ only in ``axis``.
+    """Count the pairs of ``frame``'s rows that differ only in ``axis``: per value of
+    ``keys``, the row at the smallest ``axis`` value against the row at the largest.
 
     Parameters
     ----------
@@ -100,26 +113,20 @@ def trend(
     for name in (value, axis, *keys):
         if name not in frame:
             raise ValueError(f"frame: expected a column {name!r}")
-    values = sorted(frame[axis].dropna().unique())
     changes = []
-    if len(values) >= 2:
-        lo = frame[frame[axis] == values[0]]
-        hi = frame[frame[axis] == values[-1]]
-        cols = list(keys)
-        merged = (
-            lo[[*cols, value]].merge(hi[[*cols, value]], on=cols, suffixes=("_lo", "_hi"))
-            if cols
-            else pd.DataFrame({f"{value}_lo": lo[value].to_numpy()[:1],
-                               f"{value}_hi": hi[value].to_numpy()[:1]})
-        )  # fmt: skip
-        a = pd.to_numeric(merged[f"{value}_lo"], errors="coerce").to_numpy(np.float64)
-        b = pd.to_numeric(merged[f"{value}_hi"], errors="coerce").to_numpy(np.float64)
-        ok = np.isfinite(a) & np.isfinite(b)
-        a, b = a[ok], b[ok]
+    groups = frame.groupby(list(keys), sort=False, dropna=False) if keys else [((), frame)]
+    for _, part in groups:
+        part = part.dropna(subset=[axis])
+        if part[axis].nunique() < 2:
+            continue
+        lo = part[part[axis] == part[axis].min()][value]
+        hi = part[part[axis] == part[axis].max()][value]
+        a, b = (float(pd.to_numeric(v, errors="coerce").mean()) for v in (lo, hi))
+        if not (np.isfinite(a) and np.isfinite(b)):
+            continue
         change = b - a
-        flat_tol = _RELATIVE_FLAT * np.minimum(np.abs(a), np.abs(b)) if relative else 1e-9
-        moved = np.abs(change) > flat_tol
-        changes = [(c, m) for c, m in zip(change, moved)]
+        flat_tol = _RELATIVE_FLAT * min(abs(a), abs(b)) if relative else 1e-9
+        changes.append((change, abs(change) > flat_tol))
     along = sum(bool(m and sign * c > 0) for c, m in changes)
     against = sum(bool(m and sign * c < 0) for c, m in changes)
     mean = float(np.mean([c for c, _ in changes])) if changes else float("nan")
@@ -127,14 +134,15 @@ def trend(
 
 
 def verdict(t: Trend) -> str:
-    """``'yes'`` (some pairs along, none against), ``'mostly'`` (more along than against),
-    ``'no'`` (as many or more against, or all flat), ``'cannot tell'`` (no pair)."""
+    """``'yes'`` (more than half the pairs move as stated, none against), ``'partly'``
+    (more along than against, otherwise), ``'no'`` (as many or more against, or none
+    along), ``'cannot tell'`` (no pair)."""
     if t.pairs == 0:
         return "cannot tell"
-    if t.along and not t.against:
+    if not t.against and t.along > t.pairs / 2:
         return "yes"
     if t.along > t.against:
-        return "mostly"
+        return "partly"
     return "no"
 
 
@@ -179,18 +187,18 @@ def trend_table(
     series : list of str
         The columns that name a series (e.g. ``['model', 'method']``), each tested apart;
         empty: one series.
+    statements : sequence of Statement
     label : callable, optional
-        ``label(values) -> str``: a series' row label from its tuple of ``series`` values.
+        ``label(values) -> str``: a series' column label from its tuple of ``series``
+        values; by default the values joined by spaces (``"ours"`` without any).
 
     Returns
     -------
     DataFrame
-        Index: ``"the paper's numbers"`` (on the first series' cells) then one label per
-        series (``label(values)`` of its ``series`` values; by default joined by spaces,
-        ``"ours"`` without any);
-        columns: the statements whose axis is in ``keys`` with two values or more and
-        whose value column ``cells`` has; entries: :func:`describe`. Empty without any
-        such statement.
+        One row per statement whose axis is in ``keys`` with two values or more and whose
+        value column ``cells`` has (index: its text); columns ``"the paper's numbers"``
+        (on the first series' cells) and one per series; entries: :func:`describe`
+        (``–`` where the paper has no such column). No rows without any such statement.
     """
     usable = [
         s
@@ -198,19 +206,20 @@ def trend_table(
         if s.axis in keys and s.value in cells and cells[s.axis].nunique() >= 2
     ]
     groups = list(cells.groupby(series, sort=False)) if series else [((), cells)]
-    labels = []
-    for name, _ in groups:
-        name = name if isinstance(name, tuple) else (name,)
-        labels.append(label(name) if label else " ".join(str(n) for n in name if str(n)) or "ours")
-    paper_row = "the paper's numbers"
-    table = pd.DataFrame(index=[paper_row, *labels], columns=[s.text for s in usable], dtype=object)
+    names = []
+    for values, _ in groups:
+        values = values if isinstance(values, tuple) else (values,)
+        default = " ".join(str(v) for v in values if str(v)) or "ours"
+        names.append(label(values) if label else default)
+    paper = "the paper's numbers"
+    table = pd.DataFrame(index=[s.text for s in usable], columns=[paper, *names], dtype=object)
     for s in usable:
         others = [k for k in keys if k != s.axis]
         unit = "time" if s.relative else "rate"
         if s.paper and s.paper in cells and groups:
             t = trend(groups[0][1], s.paper, s.axis, others, s.sign, s.relative)
-            table.loc[paper_row, s.text] = describe(t, unit)
-        for label, (_, part) in zip(labels, groups):
+            table.loc[s.text, paper] = describe(t, unit)
+        for name, (_, part) in zip(names, groups):
             t = trend(part, s.value, s.axis, others, s.sign, s.relative)
-            table.loc[label, s.text] = describe(t, unit)
+            table.loc[s.text, name] = describe(t, unit)
     return table.fillna("–")

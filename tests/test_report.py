@@ -31,13 +31,33 @@ def test_trend_counts_pairs_along_and_against():
     assert t.mean_change == pytest.approx(0.0) and trends.verdict(t) == "no"
     t = trends.trend(cells, "time_all", "alpha", ["m"], -1, relative=True)
     assert (t.pairs, t.along, t.against, t.flat) == (2, 1, 0, 1)  # +2 % is unchanged
-    assert trends.verdict(t) == "yes"
+    assert trends.verdict(t) == "partly"
+    assert trends.verdict(trends.Trend(3, 2, 0, 1, -1.0)) == "yes"
+    assert trends.verdict(trends.Trend(3, 1, 1, 1, -1.0)) == "no"
     none = trends.trend(cells[cells.alpha == 1.0], "rate", "alpha", ["m"], +1)
     assert none.pairs == 0 and trends.verdict(none) == "cannot tell"
     with pytest.raises(ValueError, match="^sign"):
         trends.trend(cells, "rate", "alpha", ["m"], 0)
     with pytest.raises(ValueError, match="^frame: expected a column 'kappa'"):
         trends.trend(cells, "rate", "kappa", ["m"], 1)
+
+
+def test_level_and_m_trends_pair_within_their_kind():
+    cells = pd.DataFrame(
+        {
+            "kind": ["brightness"] * 2 + ["contrast"] * 3,
+            "level": [1.0, 2.0, 5e-4, 5e-3, 1e-2],
+            "kappa": 1.0,
+            "alpha": 1.0,
+            "time_all": [10.0, 20.0, 30.0, 5.0, 29.0],
+            "paper_time_mean": [15.0, 40.0, 20.0, 25.0, 60.0],
+        }
+    )
+    table = trends.trend_table(cells, ["kind", "level", "kappa", "alpha"], [])
+    row = table.loc["Larger brightness / contrast changes cost more time"]
+    assert row["the paper's numbers"] == "yes: 2 of 2 (+32.5 s)"
+    assert row["ours"] == "partly: 1 of 2, 1 unchanged (+4.5 s)"  # 30 → 29 s: within 5 %
+    assert list(table.index) == ["Larger brightness / contrast changes cost more time"]
 
 
 def test_report_shows_figure_compact_table_and_links(tmp_path):
@@ -65,11 +85,12 @@ def test_report_shows_figure_compact_table_and_links(tmp_path):
 
 def test_readings_test_the_papers_trends_on_the_numbers(tmp_path):
     table = tables.t_local(local_records())
-    trends_ = report.trend_readings("t_local", table)
+    trends_ = report.trend_readings("t_local", table).T  # m = 2 only: no trend in m
     assert list(trends_.columns) == [
         "Verified rate rises with α",
         "Verified rate falls with κ",
         "Time per instance falls with α",
+        "Time per instance rises with κ",
         "Overlapping hulls cost more time",
     ]
     assert list(trends_.index) == [
@@ -93,8 +114,8 @@ def test_readings_test_the_papers_trends_on_the_numbers(tmp_path):
         "no: 0 of 4, 4 against (+29.9 s)"
     )
     text = report.write_report(_results(tmp_path, table)).read_text()
-    assert "| | *Verified rate rises with α* | *Verified rate falls with κ* |" in text
-    assert "| cnn pb | no: 0 of 4, 4 unchanged (+0 pp) |" in text
+    assert "| the paper states | the paper's numbers | cnn alloc (heatmap) |" in text
+    assert "| *Verified rate rises with α* | yes: 4 of 4 (+34 pp) | yes: 4 of 4 (+100 pp) |" in text
 
 
 def test_t_prob_reading_says_whether_soundness_rises_with_kappa():
@@ -107,15 +128,26 @@ def test_t_prob_reading_says_whether_soundness_rises_with_kappa():
             "completeness": [0.1, 0.2, 0.05, 0.1] * 2,
         }
     )
-    trends_ = report.trend_readings("t_prob", tables.t_prob(prob))
-    assert list(trends_.columns) == ["Soundness rises with κ"]
+    trends_ = report.trend_readings("t_prob", tables.t_prob(prob)).T
+    assert list(trends_.columns) == [
+        "Soundness rises with κ",
+        "Soundness falls with α",
+        "Completeness falls with κ",
+    ]
     column = trends_["Soundness rises with κ"]
     # The paper: 0.998978 → 1.0 at α = 1, 0.988339 → 0.999999 at α = 2.
     assert column["the paper's numbers"] == "yes: 2 of 2 (+0.63 pp)"
     assert column["ours, 'heatmap' reading"] == "no: 1 of 2, 1 against (-1.5 pp)"
     assert column["ours, 'paper' reading"] == "yes: 2 of 2 (+5 pp)"
+    # The paper: soundness falls with α (0.998978 → 0.988339 at κ = 1, 1 → 0.999999 at 2).
+    falls = trends_["Soundness falls with α"]
+    assert falls["the paper's numbers"].startswith("yes: 2 of 2")
+    assert falls["ours, 'heatmap' reading"] == "no: 0 of 2, 2 against (+8.5 pp)"
     single = tables.t_prob(prob[prob.tolerance_units == "paper"].drop(columns="tolerance_units"))
-    assert list(report.trend_readings("t_prob", single).index) == ["the paper's numbers", "ours"]
+    assert list(report.trend_readings("t_prob", single).columns) == [
+        "the paper's numbers",
+        "ours",
+    ]
 
 
 def test_old_results_folders_still_render(tmp_path):
@@ -131,7 +163,7 @@ def test_old_results_folders_still_render(tmp_path):
     assert "*Figure `t_local` is missing.*" in text
     assert "| – | alloc | 16 | 8 / 8 / 0 | 8 | 50% |" in text
     assert text.split("| – | alloc |")[1].split("\n")[0].endswith("| – | – | 62.2 |")
-    assert "| alloc | yes: 4 of 4 (+100 pp) |" in text
+    assert "| *Verified rate rises with α* | yes: 4 of 4 (+34 pp) | yes: 4 of 4 (+100 pp) |" in text
     # With a figure drawn from the old table: proof times absent, all-instance times shown.
     fig = comparison.plot_comparison(pd.read_csv(out / "tables" / "t_local.csv"), "old")
     assert fig.axes
