@@ -57,17 +57,18 @@ CELL_COLUMNS = (
     "time_all",
     "time_proof",
     "time_refute",
+    "time_unknown",
     "paper_rate",
     "paper_time_mean",
     "paper_time_std",
 )
 _PAPER = ("paper_rate", "paper_time_mean", "paper_time_std")
 #: method → table columns for (holds, violated, unknown, rate, time_all, time_proof,
-#: time_refute)
+#: time_refute, time_unknown)
 _ALLOC = ("holds", "violated", "unknown", "verified_rate", "time_mean", "time_holds_mean",
-          "time_violated_mean")  # fmt: skip
+          "time_violated_mean", "time_unknown_mean")  # fmt: skip
 _PB = ("pb_holds", "pb_violated", "pb_unknown", "pb_verified_rate", "pb_time_mean",
-       "pb_time_holds_mean", "pb_time_violated_mean")  # fmt: skip
+       "pb_time_holds_mean", "pb_time_violated_mean", "pb_time_unknown_mean")  # fmt: skip
 _NEEDED = ("kappa", "alpha", "instances", "seeds_inside", "verified_rate", *_PAPER)
 
 
@@ -89,7 +90,8 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
         ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts, ``rate`` (holds among seeds
         inside Ξ ÷ those seeds; NaN without any), times in seconds per instance
         (``time_all`` over all instances, ``time_proof`` over ``holds``, ``time_refute``
-        over ``violated``; NaN where there are none or the table has no such column), and
+        over ``violated``, ``time_unknown`` over ``unknown``; NaN where there are none or
+        the table has no such column), and
         the paper's rate and time (NaN where the paper has no cell).
     """
     if not isinstance(table, pd.DataFrame):
@@ -121,7 +123,9 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def _method_frame(table, model, names, columns, conditions) -> pd.DataFrame:
-    holds, violated, unknown, rate, time_all, proof, refute = (_numeric(table, c) for c in columns)
+    holds, violated, unknown, rate, time_all, proof, refute, undecided = (
+        _numeric(table, c) for c in columns
+    )
     data = {"model": model.to_numpy(), "method": names.to_numpy()}
     for c in (*conditions, *GRID_COLUMNS):
         data[c] = table[c].to_numpy()
@@ -135,6 +139,7 @@ def _method_frame(table, model, names, columns, conditions) -> pd.DataFrame:
         time_all=time_all,
         time_proof=proof,
         time_refute=refute,
+        time_unknown=undecided,
         **{c: _numeric(table, c) for c in _PAPER},
     )
     return pd.DataFrame(data)
@@ -224,8 +229,8 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
         :data:`CONDITIONS` and columns (κ, α), one colour scale (0–1) for all; each of our
         cells reads our rate, the paper's and the difference, hatched where there is no
         rate. Below, per model, the time per instance on a log scale, cell by cell: per
-        method the mean over proofs (filled) and over refutations (hollow), and the
-        paper's mean ± std (black).
+        method the mean over proofs (filled), over refutations (hollow) and over unknowns
+        (a cross: the budget spent), and the paper's mean ± std (black).
     """
     if not isinstance(title, str):
         raise ValueError(f"title: expected a string, got {type(title).__name__}")
@@ -379,13 +384,17 @@ def _time_panel(ax, part, conditions, rows, cols, methods):
         shift = -0.4 + width * (j + 0.5)
         proof = np.array([_value(mine, conditions, r, c, "time_proof") for r, c in present])
         refute = np.array([_value(mine, conditions, r, c, "time_refute") for r, c in present])
+        undecided = np.array([_value(mine, conditions, r, c, "time_unknown") for r, c in present])
         split = mine["time_proof"].notna().any() or mine["time_refute"].notna().any()
         if split:
             ax.scatter(x + shift, proof, marker="o", color=color, s=22, zorder=3,
                        label=f"{method}: proofs (holds)")  # fmt: skip
             ax.scatter(x + shift, refute, marker="v", facecolors="none", edgecolors=color,
                        s=26, zorder=3, label=f"{method}: refutations (violated)")  # fmt: skip
-            drawn += [proof, refute]
+            if np.isfinite(undecided).any():
+                ax.scatter(x + shift, undecided, marker="x", color=color, s=22, zorder=3,
+                           lw=1, label=f"{method}: unknown (budget spent)")  # fmt: skip
+            drawn += [proof, refute, undecided]
         else:  # a table from before the split: all instances together
             every = np.array([_value(mine, conditions, r, c, "time_all") for r, c in present])
             ax.scatter(x + shift, every, marker="s", color=color, s=18, zorder=3,

@@ -16,15 +16,16 @@ its axes and reports, per cell:
 * ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
   coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
-  ``time_holds_mean`` and ``time_violated_mean``: over its proofs (``holds``) and its
-  refutations (``violated``) only (NaN without any), so that proofs compare with
+  ``time_holds_mean``, ``time_violated_mean`` and ``time_unknown_mean``: over its
+  proofs (``holds``), its refutations (``violated``) and its undecided instances
+  (``unknown``, a budget spent) only (NaN without any), so that proofs compare with
   proofs;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_verified_rate`` (same
-  denominator), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``
-  as above); ``pb_by_witness``, ``pb_by_enumeration``,
+  denominator), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
+  ``pb_time_unknown_mean`` as above); ``pb_by_witness``, ``pb_by_enumeration``,
   ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before
   it was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
   otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those
@@ -175,6 +176,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["time_std"] = float(cell["time"].std(ddof=0))
         row["time_holds_mean"] = _mean(cell["time"][holds])
         row["time_violated_mean"] = _mean(cell["time"][cell["status"] == "violated"])
+        row["time_unknown_mean"] = _mean(cell["time"][cell["status"] == "unknown"])
         if "pb_status" in cell and cell["pb_status"].notna().any():
             pb = cell["pb_status"] == "holds"
             row["pb_holds"] = int(pb.sum())
@@ -186,6 +188,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_time_mean"] = float(cell["pb_time"].mean())
             row["pb_time_holds_mean"] = _mean(cell["pb_time"][pb])
             row["pb_time_violated_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "violated"])
+            row["pb_time_unknown_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "unknown"])
             rules = _pb_rules(cell)
             row.update({f"pb_by_{r}": int((rules == r).sum()) for r in _PB_RULES})
             row["pb_enumeration_holds"] = int((pb & (rules == "enumeration")).sum())
@@ -214,6 +217,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "time_std",
         "time_holds_mean",
         "time_violated_mean",
+        "time_unknown_mean",
     ]
     if "pb_status" in records:
         columns += [
@@ -224,6 +228,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_time_mean",
             "pb_time_holds_mean",
             "pb_time_violated_mean",
+            "pb_time_unknown_mean",
             *(f"pb_by_{r}" for r in _PB_RULES),
             "pb_enumeration_holds",
             "pb_nonlinear_outside",

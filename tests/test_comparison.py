@@ -61,6 +61,9 @@ def test_tables_split_times_by_status(table):
     assert row.pb_violated == 0 and row.pb_unknown + row.pb_holds == 2
     row = table[(table.tolerance_units == "heatmap") & (table.alpha == 1.5)].iloc[0]
     assert row.time_holds_mean == pytest.approx(30.0) and np.isnan(row.time_violated_mean)
+    assert np.isnan(row.time_unknown_mean)
+    pb = table[(table.tolerance_units == "heatmap") & table.overlapping].iloc[0]
+    assert pb.pb_time_unknown_mean == pytest.approx(200.0) and np.isnan(pb.pb_time_holds_mean)
 
 
 def test_method_cells_has_every_method(table):
@@ -122,11 +125,12 @@ def test_figure_shows_every_method_beside_the_paper(table):
     assert limits == {(0.0, 1.0)}
     labels = time_axes[0].get_legend_handles_labels()[1]
     assert "pb: proofs (holds)" in labels and "alloc (heatmap): refutations (violated)" in labels
+    assert "pb: unknown (budget spent)" in labels  # pb's overlapping hulls, 200 s each
     assert any(label.startswith("paper (RTX A4000)") for label in labels)
     # Proof times on the axis: 30 s for the allocation's holds, 50 s for pb.
     offsets = np.concatenate([c.get_offsets()[:, 1] for c in time_axes[0].collections
                               if len(c.get_offsets())])  # fmt: skip
-    assert {30.0, 50.0, 0.1} <= set(np.round(offsets.compressed(), 6))
+    assert {30.0, 50.0, 0.1, 200.0} <= set(np.round(offsets.compressed(), 6))
 
 
 def test_missing_cells_are_hatched_not_zero():
