@@ -58,6 +58,7 @@ CELL_COLUMNS = (
     "time_proof",
     "time_refute",
     "time_unknown",
+    "exact_holds",
     "paper_rate",
     "paper_time_mean",
     "paper_time_std",
@@ -91,7 +92,9 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
         inside Ξ ÷ those seeds; NaN without any), times in seconds per instance
         (``time_all`` over all instances, ``time_proof`` over ``holds``, ``time_refute``
         over ``violated``, ``time_unknown`` over ``unknown``; NaN where there are none or
-        the table has no such column), and
+        the table has no such column), ``exact_holds`` (the pose-bound method's ``holds``
+        decided by PnP over every region combination, exact for argmax → PnP; the others
+        rest on the linearised bound; NaN for the allocation method), and
         the paper's rate and time (NaN where the paper has no cell).
     """
     if not isinstance(table, pd.DataFrame):
@@ -106,12 +109,16 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
         alloc_names = "alloc (" + units + ")"
     else:
         alloc_names = pd.Series("alloc", table.index)
-    frames = [_method_frame(table, model, alloc_names, _ALLOC, conditions)]
+    frames = [_method_frame(table, model, alloc_names, _ALLOC, conditions, None)]
     if "pb_holds" in table:
         rows = table["pb_holds"].notna()
         if rows.any():
             names = pd.Series("pb", table.index)
-            frames.append(_method_frame(table[rows], model[rows], names[rows], _PB, conditions))
+            frames.append(
+                _method_frame(
+                    table[rows], model[rows], names[rows], _PB, conditions, "pb_enumeration_holds"
+                )
+            )
     out = pd.concat(frames, ignore_index=True)
     order = {m: i for i, m in enumerate(_method_order(out["method"]))}
     out = out.sort_values(
@@ -122,7 +129,7 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     return out.reset_index(drop=True)
 
 
-def _method_frame(table, model, names, columns, conditions) -> pd.DataFrame:
+def _method_frame(table, model, names, columns, conditions, exact) -> pd.DataFrame:
     holds, violated, unknown, rate, time_all, proof, refute, undecided = (
         _numeric(table, c) for c in columns
     )
@@ -140,6 +147,7 @@ def _method_frame(table, model, names, columns, conditions) -> pd.DataFrame:
         time_proof=proof,
         time_refute=refute,
         time_unknown=undecided,
+        exact_holds=_numeric(table, exact) if exact else np.full(len(table), np.nan),
         **{c: _numeric(table, c) for c in _PAPER},
     )
     return pd.DataFrame(data)
@@ -361,11 +369,17 @@ def _row_label(conditions, key) -> str:
 
 
 def _counts(part: pd.DataFrame) -> str:
-    """``holds / violated / unknown`` of a method's cells (``?`` where not stored)."""
-    return "holds/violated/unknown " + "/".join(
+    """``holds / violated / unknown`` of a method's cells (``?`` where not stored); for
+    the pose-bound method, how many holds are exact and how many rest on the linearised
+    bound."""
+    text = "holds/violated/unknown " + "/".join(
         "?" if part[c].isna().all() else str(int(part[c].sum()))
         for c in ("holds", "violated", "unknown")
     )
+    if part["exact_holds"].notna().any() and part["holds"].notna().any():
+        exact = int(part["exact_holds"].sum())
+        text += f"\n(holds: {exact} exact, {int(part['holds'].sum()) - exact} linearised bound)"
+    return text
 
 
 def _time_panel(ax, part, conditions, rows, cols, methods):

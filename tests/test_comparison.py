@@ -111,6 +111,9 @@ def test_figure_shows_every_method_beside_the_paper(table):
         for method in ("alloc (heatmap)", "alloc (paper)", "pb"):
             assert any(t.startswith(f"{model}: {method}\n") for t in titles), (model, method)
     assert sum(t.startswith("paper (RTX A4000)") for t in titles) == 2
+    # Records from before pb_rule: every pb holds rests on the linearised bound.
+    assert "cnn: pb\nholds/violated/unknown 8/0/8\n(holds: 0 exact, 8 linearised bound)" in titles
+    assert "cnn: alloc (heatmap)\nholds/violated/unknown 8/8/0" in titles
     time_axes = [ax for ax in fig.axes if ax.get_yscale() == "log"]
     assert len(time_axes) == 2
     assert all("ours: 2 CPU cores" in ax.get_title() and "RTX A4000" in ax.get_title()
@@ -174,7 +177,11 @@ def test_old_tables_still_render():
     counts = comparison.compact_table(older).set_index("method").loc["pb"]
     assert counts.holds == 8 and pd.isna(counts.violated) and pd.isna(counts.unknown)
     fig = comparison.plot_comparison(older, "older")
-    assert any(ax.get_title() == "cnn: pb\nholds/violated/unknown 8/?/?" for ax in fig.axes)
+    assert any(
+        ax.get_title()
+        == "cnn: pb\nholds/violated/unknown 8/?/?\n(holds: 0 exact, 8 linearised bound)"
+        for ax in fig.axes
+    )
 
 
 def test_bad_input():
@@ -186,3 +193,16 @@ def test_bad_input():
         comparison.plot_comparison(tables.t_local(local_records()), None)
     with pytest.raises(ValueError, match="^table_csv"):
         comparison.save_comparison("/nonexistent/t_local.csv", "/tmp/x.png")
+
+
+def test_pose_bound_holds_say_which_are_exact():
+    records = local_records()
+    exact = (records.pb_status == "holds") & (records.kappa == 1.0)
+    records["pb_rule"] = np.where(exact, "enumeration", "linearised")
+    cells = comparison.method_cells(tables.t_local(records))
+    pb = cells[(cells.method == "pb") & (cells.model == "cnn")]
+    assert pb.exact_holds.sum() == 4 and pb.holds.sum() == 8
+    assert cells[cells.method != "pb"].exact_holds.isna().all()
+    fig = comparison.plot_comparison(tables.t_local(records), "T-local")
+    titles = [ax.get_title() for ax in fig.axes]
+    assert "cnn: pb\nholds/violated/unknown 8/0/8\n(holds: 4 exact, 4 linearised bound)" in titles
