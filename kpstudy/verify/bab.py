@@ -6,27 +6,23 @@ above zero when recomputed in float64); the concrete model is evaluated at every
 node's vertices and centroid and, where the bounds fail, projected gradient descent on
 the worst margin looks for a counterexample inside the node; nodes still open are split
 (longest edge bisection for a simplex, longest side for a cube, widest pixel for a box),
-the two children exactly covering their parent.
+the two children exactly covering their parent. The loop is
+:func:`kpstudy.verify.search.branch_and_bound`, shared with
+:func:`~kpstudy.verify.reachable.reachable_argmax`; what a node decides is
+:meth:`_Search.decide`.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import time
 
 import torch
 
-from kpstudy.verify.bounds import (
-    METHODS,
-    BoundsTimeout,
-    example_input,
-    node_region,
-    row_bounds,
-    symbol_budget,
-)
+from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
 from kpstudy.verify.graph import trace
 from kpstudy.verify.result import Counterexample, Result
+from kpstudy.verify.search import Step, branch_and_bound, check_budget, default_batch
 from kpstudy.verify.spec import ArgmaxSpec
 
 
@@ -87,9 +83,22 @@ def verify(
 
     Examples
     --------
-    >>> result = verify(proxy, ConvexHull(images), ArgmaxSpec(sizes, targets))  # doctest: +SKIP
+    Outputs ``y = (x, 1/2)`` of a scalar image ``x``: index 0 stays the argmax on the hull
+    of the images 1 and 2, not on that of 0 and 2.
+
+    >>> from torch import nn
+    >>> from kpstudy.verify import ConvexHull
+    >>> net = nn.Sequential(nn.Linear(1, 2)).double().eval()
+    >>> with torch.no_grad():
+    ...     _ = net[0].weight.copy_(torch.tensor([[1.0], [0.0]]))
+    ...     _ = net[0].bias.copy_(torch.tensor([0.0, 0.5]))
+    >>> spec = ArgmaxSpec([2], [0])
+    >>> result = verify(net, ConvexHull(torch.tensor([[1.0], [2.0]]).double()), spec)
     >>> result.status, result.nodes
-    ('holds', 3)
+    ('holds', 1)
+    >>> result = verify(net, ConvexHull(torch.tensor([[0.0], [2.0]]).double()), spec)
+    >>> result.status, result.counterexample.image
+    ('violated', tensor([0.], dtype=torch.float64))
     """
     start = time.perf_counter()
     method = _check(method, timeout, max_nodes, batch, tol)
@@ -98,61 +107,37 @@ def verify(
     _check_dtype(model, input_set)
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
-    search = _Search(model, graph, input_set, spec, method, tol, memory, start + timeout)
-    if batch is None:  # coefficient stacks (centre and radius) of the largest value
-        rows = input_set.n + 1 if input_set.domain != "box" else 1
-        if method == "zonotope":  # plus its error symbols
-            rows += symbol_budget(graph, rows)
-        biggest = max(math.prod(n.shape) for n in graph.nodes)
-        batch = max(1, min(64, memory // (2 * rows * biggest)))
+    search = _Search(
+        model,
+        graph,
+        input_set,
+        spec,
+        method,
+        tol,
+        memory,
+        start + timeout,
+        attack_steps,
+        stop_on_violation,
+    )
+    if batch is None:
+        batch = default_batch(graph, input_set, method == "zonotope", memory)
     G = spec.n_groups
     open_groups = torch.zeros(G, dtype=torch.bool)
     open_groups[spec.active_groups] = True
-    violated = torch.zeros(G, dtype=torch.bool)
-    counterexample = None
-    queue = [(input_set.root(), open_groups[None].clone(), 0)]
-    nodes_done, depth, root_margin = 0, 0, None
-    timed_out = False
-
-    def record(found):
-        nonlocal counterexample
-        for g, cex in found.items():
-            violated[g] = True
-            counterexample = counterexample or cex
-
     with torch.no_grad():
-        while queue:
-            if time.perf_counter() - start > timeout or (max_nodes and nodes_done >= max_nodes):
-                timed_out = True
-                break
-            nodes, mask, level = _take(queue, batch)
-            depth = max(depth, level)
-            # Cheap falsification first (node corners and centroid), then bounds, then
-            # gradient descent where the bounds fail.
-            record(search.probe(nodes, mask & ~violated))
-            mask = mask & ~violated
-            if counterexample is None or not stop_on_violation:
-                try:
-                    margin, proved = search.group_margins(nodes, mask)  # (B, G)
-                except BoundsTimeout:  # the nodes stay open
-                    queue.insert(0, (nodes, mask, level))
-                    timed_out = True
-                    break
-                if root_margin is None:
-                    root_margin = margin[0].clone()
-                nodes_done += len(nodes)
-                mask = mask & ~proved
-                record(search.descend(nodes, mask, attack_steps * (8 if level == 0 else 1)))
-                mask = mask & ~violated
-            keep = mask.any(1)
-            if counterexample is not None and stop_on_violation:
-                queue.insert(0, (nodes[keep], mask[keep], level))
-                break
-            if keep.any():
-                queue.append((input_set.split(nodes[keep]), mask[keep].repeat(2, 1), level + 1))
+        done = branch_and_bound(
+            input_set.root(),
+            open_groups[None],
+            search.decide,
+            input_set.split,
+            batch=batch,
+            deadline=start + timeout,
+            max_nodes=max_nodes,
+        )
     still_open = torch.zeros(G, dtype=torch.bool)
-    for _, m, _ in queue:
+    for _, m, _ in done.left:
         still_open |= m.any(0)
+    violated = search.violated
     group_status = []
     for g in range(G):
         if spec.targets[g] is None:
@@ -171,15 +156,15 @@ def verify(
         status = "holds"
     stats = {
         "method": method,
-        "depth": depth,
+        "depth": done.depth,
         "batch": batch,
-        "timed_out": timed_out,
+        "timed_out": done.stopped in ("nodes", "time"),
         "float64_rechecks": search.rechecks,
-        "root_margin": None if root_margin is None else root_margin.tolist(),
+        "root_margin": None if search.root_margin is None else search.root_margin.tolist(),
         "attack_margin": search.attack_margin.tolist(),
     }
     return Result(
-        status, group_status, counterexample, time.perf_counter() - start, nodes_done, stats
+        status, group_status, search.counterexample, time.perf_counter() - start, done.nodes, stats
     )
 
 
@@ -192,32 +177,6 @@ def _check(method, timeout, max_nodes, batch, tol) -> str:
     if not tol >= 0:
         raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
     return method
-
-
-def check_budget(timeout, max_nodes, batch) -> None:
-    """Refuse a search budget that is not seconds > 0 and optional positive counts."""
-    if not timeout > 0:
-        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
-    for name, v in (("max_nodes", max_nodes), ("batch", batch)):
-        if v is not None and not (isinstance(v, int) and v >= 1):
-            raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
-
-
-def _take(queue: list, batch: int):
-    """Pop up to ``batch`` nodes from the front of the queue (breadth first); their
-    masks and the shallowest level among them."""
-    nodes, masks, levels, count = [], [], [], 0
-    while queue and count < batch:
-        n, m, level = queue.pop(0)
-        room = batch - count
-        if len(n) > room:
-            queue.insert(0, (n[room:], m[room:], level))
-            n, m = n[:room], m[:room]
-        nodes.append(n)
-        masks.append(m)
-        levels.append(level)
-        count += len(n)
-    return torch.cat(nodes), torch.cat(masks), min(levels)
 
 
 def _check_dtype(model, input_set) -> None:
@@ -234,18 +193,59 @@ def _check_dtype(model, input_set) -> None:
 
 
 class _Search:
-    """Bounds and attacks for one instance."""
+    """Bounds and attacks for one instance, and what they found so far."""
 
-    def __init__(self, model, graph, input_set, spec, method, tol, memory, deadline):
+    def __init__(
+        self,
+        model,
+        graph,
+        input_set,
+        spec,
+        method,
+        tol,
+        memory,
+        deadline,
+        attack_steps,
+        stop_on_violation,
+    ):
         self.model, self.graph, self.set, self.spec = model, graph, input_set, spec
         self.method, self.tol, self.memory, self.deadline = method, tol, memory, deadline
+        self.attack_steps, self.stop_on_violation = attack_steps, stop_on_violation
         self.graph64 = self.model64 = None
         self.rechecks = 0
         #: Per group, the smallest margin the model showed at a point tried inside the set.
         self.attack_margin = torch.full((spec.n_groups,), torch.inf, dtype=torch.float64)
+        #: Groups with a counterexample ``(G,)``, the first one found, the root's margins.
+        self.violated = torch.zeros(spec.n_groups, dtype=torch.bool)
+        self.counterexample: Counterexample | None = None
+        self.root_margin: torch.Tensor | None = None
         with torch.no_grad():  # float32 rounding scales with the outputs' magnitude
             y0 = graph.forward(example_input(input_set).to(graph.dtype))
         self.tol_abs = tol * (1.0 + float(y0.abs().max()))
+
+    def decide(self, nodes, mask, level: int) -> Step:
+        """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: the groups still
+        open ``(B, G)`` in ``nodes`` after cheap falsification (corners and centroid),
+        bounds, then gradient descent where the bounds fail; stop at a counterexample if
+        ``stop_on_violation`` (the batch then counts as bounded only if it was)."""
+        self._record(self.probe(nodes, mask & ~self.violated))
+        mask = mask & ~self.violated
+        stop = self.counterexample is not None and self.stop_on_violation
+        if not stop:
+            margin, proved = self.group_margins(nodes, mask)  # (B, G)
+            if self.root_margin is None:
+                self.root_margin = margin[0].clone()
+            mask = mask & ~proved
+            steps = self.attack_steps * (8 if level == 0 else 1)
+            self._record(self.descend(nodes, mask, steps))
+            mask = mask & ~self.violated
+        found = self.counterexample is not None and self.stop_on_violation
+        return Step(mask, mask.any(1), stop=found, bounded=not stop)
+
+    def _record(self, found: dict[int, Counterexample]) -> None:
+        for g, cex in found.items():
+            self.violated[g] = True
+            self.counterexample = self.counterexample or cex
 
     def group_margins(self, nodes, mask) -> tuple[torch.Tensor, torch.Tensor]:
         """Lower bounds ``(B, G)`` of each open group's smallest margin (+inf if closed

@@ -14,28 +14,22 @@ bounds, so the rule is never weaker than comparing intervals. The union of the n
 undropped indices is the possible set. Witnesses come from the concrete model at the
 set's corners, random points and every node's centre: the argmax there is reached. A
 node is split while it keeps, for some group, an index not yet reached; the search ends
-when the possible and reached sets agree (``complete``) or the budget is spent.
+when the possible and reached sets agree (``complete``) or the budget is spent. The loop
+is :func:`kpstudy.verify.search.branch_and_bound`, shared with
+:func:`~kpstudy.verify.bab.verify`.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from kpstudy.verify.bab import _take, check_budget
-from kpstudy.verify.bounds import (
-    BoundsTimeout,
-    domain_min,
-    example_input,
-    node_region,
-    propagate,
-    symbol_budget,
-)
+from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
 from kpstudy.verify.graph import trace
+from kpstudy.verify.search import Step, branch_and_bound, check_budget, default_batch
 from kpstudy.verify.symbols import l1_rows
 
 METHODS = ("ibp", "forward", "zonotope")
@@ -145,9 +139,18 @@ def reachable_argmax(
 
     Examples
     --------
-    >>> regions = reachable_argmax(backbone, ConvexHull(images), [64 * 64] * 23)  # doctest: +SKIP
+    One group ``y = (1 − x, x, 0.2)`` of a scalar image ``x`` on the hull of 0 and 1:
+    index 0 wins below ``x = 1/2``, index 1 above, index 2 nowhere.
+
+    >>> from torch import nn
+    >>> from kpstudy.verify import ConvexHull
+    >>> net = nn.Sequential(nn.Linear(1, 3)).double().eval()
+    >>> with torch.no_grad():
+    ...     _ = net[0].weight.copy_(torch.tensor([[-1.0], [1.0], [0.0]]))
+    ...     _ = net[0].bias.copy_(torch.tensor([1.0, 0.0, 0.2]))
+    >>> regions = reachable_argmax(net, ConvexHull(torch.tensor([[0.0], [1.0]]).double()), [3])
     >>> regions.possible[0], regions.complete
-    (array([2079, 2080, 2143]), True)
+    (array([0, 1]), True)
     """
     start = time.perf_counter()
     check_search(method, timeout, max_nodes, start_depth, batch)
@@ -172,47 +175,29 @@ def reachable_argmax(
         model, graph, input_set, sizes, method, min(candidates, S), tol, start + timeout
     )
     if batch is None:
-        q = input_set.n + 1
-        if method == "zonotope":  # plus its error symbols
-            q += symbol_budget(graph, q)
-        biggest = max(max(math.prod(n.shape) for n in graph.nodes), G * S * (candidates + 2))
-        batch = max(1, min(64, memory // (2 * q * biggest)))
+        widest = G * S * (candidates + 2)
+        batch = default_batch(graph, input_set, method == "zonotope", memory, widest)
 
     with torch.no_grad():
         if samples:
             search.witness(input_set.sample(samples, seed))
-        possible = torch.zeros(G, S, dtype=torch.bool)  # union over closed nodes
         root = input_set.root()
         search.witness(input_set.node_points(root).reshape(-1, input_set.n))  # its corners
         for _ in range(start_depth):
             root = input_set.split(root)
-        queue = [(root, search.valid[None].repeat(len(root), 1, 1), start_depth)]
-        nodes_done, depth, stopped = 0, start_depth, None
-        while queue:
-            if max_nodes is not None and nodes_done >= max_nodes:
-                stopped = "nodes"
-                break
-            if time.perf_counter() - start > timeout:
-                stopped = "time"
-                break
-            room = batch if max_nodes is None else min(batch, max_nodes - nodes_done)
-            nodes, parent, level = _take(queue, room)
-            depth = max(depth, level)
-            search.witness(input_set.node_points(nodes)[:, -1])  # the centres
-            try:
-                kept = search.undominated(nodes) & parent  # (B, G, S)
-            except BoundsTimeout:  # the nodes stay open, with their parents' sets
-                queue.insert(0, (nodes, parent, level))
-                stopped = "time"
-                break
-            nodes_done += len(nodes)
-            open_ = (kept & ~search.reached).flatten(1).any(1)
-            possible |= kept[~open_].any(0)
-            if open_.any():
-                queue.append(
-                    (input_set.split(nodes[open_]), kept[open_].repeat(2, 1, 1), level + 1)
-                )
-        for _, parent, _ in queue:  # what was left open keeps its parent's sets
+        done = branch_and_bound(
+            root,
+            search.valid[None].repeat(len(root), 1, 1),
+            search.decide,
+            input_set.split,
+            batch=batch,
+            deadline=start + timeout,
+            max_nodes=max_nodes,
+            exact_budget=True,
+            level=start_depth,
+        )
+        possible = search.possible
+        for _, parent, _ in done.left:  # what was left open keeps its parent's sets
             possible |= parent.any(0)
         possible |= search.reached  # float rounding must never drop a witnessed index
     return Regions(
@@ -220,12 +205,12 @@ def reachable_argmax(
         [np.flatnonzero(p.numpy()) for p in possible],
         search.witnesses,
         time.perf_counter() - start,
-        nodes_done,
+        done.nodes,
         {
             "method": method,
-            "depth": depth,
-            "timed_out": stopped == "time",
-            "stopped": stopped,
+            "depth": done.depth,
+            "timed_out": done.stopped == "time",
+            "stopped": done.stopped,
             "candidates": candidates,
         },
     )
@@ -260,6 +245,8 @@ class _Reach:
         self.flat = torch.where(self.valid, torch.tensor(offsets)[:, None] + within, 0)
         self.uniform = bool(self.valid.all())  # equal groups: the layout is a view
         self.reached = torch.zeros(self.G, self.S, dtype=torch.bool)
+        #: Indices undominated in some node closed so far ``(G, S)``.
+        self.possible = torch.zeros(self.G, self.S, dtype=torch.bool)
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
         with torch.no_grad():
             y0 = graph.forward(example_input(input_set).to(graph.dtype))
@@ -275,6 +262,17 @@ class _Reach:
                 if not self.reached[g, i]:
                     self.reached[g, i] = True
                     self.witnesses[g][i] = chunk[p].clone()
+
+    def decide(self, nodes, parent, level: int) -> Step:
+        """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: witnesses at the
+        nodes' centres, then the indices still possible ``(B, G, S)`` in each node (those
+        of its ``parent`` not provably beaten); a node stays open while it keeps an index
+        without a witness, and a closed node's indices join :attr:`possible`."""
+        self.witness(self.set.node_points(nodes)[:, -1])  # the centres
+        kept = self.undominated(nodes) & parent
+        open_ = (kept & ~self.reached).flatten(1).any(1)
+        self.possible |= kept[~open_].any(0)
+        return Step(kept, open_)
 
     def undominated(self, nodes: torch.Tensor) -> torch.Tensor:
         """Indices not provably beaten in each node, ``(B, G, S)`` bool."""

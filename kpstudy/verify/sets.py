@@ -33,8 +33,9 @@ class ConvexHull:
 
     Examples
     --------
-    >>> hull = ConvexHull(torch.stack([x0, x1, x2]))  # doctest: +SKIP
-    >>> hull.image(torch.tensor([0.5, 0.25]))          # 0.25 X0 + 0.5 X1 + 0.25 X2
+    >>> hull = ConvexHull(torch.tensor([[0.0, 0.0], [4.0, 0.0], [0.0, 8.0]]))
+    >>> hull.image(torch.tensor([0.5, 0.25]))  # 0.25 X0 + 0.5 X1 + 0.25 X2
+    tensor([2., 2.])
     """
 
     domain = "simplex"
