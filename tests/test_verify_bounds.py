@@ -193,6 +193,7 @@ def test_zonotope_stays_tight_where_forward_bounds_blow_up():
 def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
     from kpstudy.verify import bounds as B
     from kpstudy.verify.graph import trace
+    from kpstudy.verify.operators import interval
 
     def widths(net, hull, y):
         graph = trace(net, hull.vertices[:1])
@@ -203,7 +204,7 @@ def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
             assert stacks.mid.shape[1] - q <= (
                 B.symbol_budget(graph, q) if budget is None else budget
             )
-            lo, hi = B.interval(stacks.mid, stacks.rad, q, "simplex")
+            lo, hi = interval(stacks.mid, stacks.rad, q, "simplex")
             slack = 1e-5 * (1 + y.abs().max())
             assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all(), budget
             out.append((hi - lo).mean().item())
@@ -273,6 +274,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     from kpstudy.verify import bounds as B
     from kpstudy.verify import symbols
     from kpstudy.verify.graph import trace
+    from kpstudy.verify.operators import interval
 
     if net_name == "local":
         net, shape = LocalNet(seed).double(), (2, 11, 9)
@@ -301,7 +303,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
         lows.append(B.zonotope_min(coeff, q, "simplex"))
     torch.testing.assert_close(lows[0], lows[1])
     torch.testing.assert_close(blocks.rad, dense.rad)
-    lo, hi = B.interval(blocks.mid, blocks.rad, q, "simplex")
+    lo, hi = interval(blocks.mid, blocks.rad, q, "simplex")
     assert (y >= lo.min(0).values - 1e-9).all() and (y <= hi.max(0).values + 1e-9).all()
 
 

@@ -50,7 +50,7 @@ import torch
 
 from kpstudy.verify import operators, symbols
 from kpstudy.verify.graph import Graph, trace
-from kpstudy.verify.operators import domain_min, interval, symbol_reach
+from kpstudy.verify.operators import domain_min, symbol_reach
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 #: Elements a zonotope's centre stack may hold per region (symbols × the largest
@@ -252,11 +252,6 @@ def backward(graph: Graph, region: Region, saved: dict, pos, neg, start: int = -
     coeff = torch.einsum("brd,bqd->brq", a, mid) - torch.einsum("brd,bqd->brq", a.abs(), rad)
     coeff[..., 0] += const
     return domain_min(coeff.transpose(1, 2), region.domain)
-
-
-# Earlier names, for callers not yet moved.
-_backward = backward
-_interval = interval
 
 
 def output_bounds(model, input_set, method: str = "forward") -> tuple[torch.Tensor, torch.Tensor]:
