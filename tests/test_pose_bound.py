@@ -18,6 +18,9 @@ from kpstudy.train import load_checkpoint
 from kpstudy.verify import ConvexHull
 from tests.test_campaign import _seed, study  # noqa: F401  (the module fixture)
 
+#: Seconds that only cap a stalled pose-bound search: node budgets decide what it finds.
+CAP = 600.0
+
 
 def _random_sets(rng, K, most=5, spread=8.0):
     return [rng.normal(0, spread, (rng.integers(1, most + 1), 2)) for _ in range(K)]
@@ -85,16 +88,18 @@ def test_bad_input_is_named():
         linearised_bound(np.zeros((6, 4)), [np.zeros((1, 2)), np.zeros((0, 2))])
 
 
+@pytest.mark.slow
 def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     data, checkpoint = study
     backbone, _ = load_checkpoint(checkpoint)
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
-    huge = certify(backbone, vertices, seed, alpha=1e4, check_samples=0, pose_bound_timeout=5)
+    budget = dict(check_samples=0, pose_bound_timeout=CAP, pose_bound_nodes=1)  # the hull
+    huge = certify(backbone, vertices, seed, alpha=1e4, **budget)
     assert huge["pb_status"] == "holds" and huge["pb_counterexample"] is None
     assert len(huge["pb_bound"]) == 6 and len(huge["pb_pixels"]) == 23
     assert min(huge["pb_pixels"]) >= 1 and huge["pb_time"] > 0 and huge["pb_stride"] == 1
-    small = certify(backbone, vertices, seed, alpha=0.05, check_samples=0, pose_bound_timeout=5)
+    small = certify(backbone, vertices, seed, alpha=0.05, **budget)
     if small["pb_stopped"] != "witness":  # a search ran: its regions are the hull's
         assert small["pb_bound"] == huge["pb_bound"]
     else:  # the seed or a first image refuted it: no node was bounded
@@ -106,17 +111,10 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     with pytest.raises(ValueError, match="^stride"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_stride=2)
     # The regions from zonotope bounds, recorded as such.
-    zono = certify(
-        backbone,
-        vertices,
-        seed,
-        alpha=1e4,
-        check_samples=0,
-        pose_bound_timeout=5,
-        pose_bound_method="zonotope",
-    )
+    zono = certify(backbone, vertices, seed, alpha=1e4, pose_bound_method="zonotope", **budget)
     assert zono["pb_method"] == "zonotope" and huge["pb_method"] == "forward"
     assert zono["pb_status"] == "holds" and len(zono["pb_pixels"]) == 23
+    assert zono["pb_nodes"] == huge["pb_nodes"] == 1
     with pytest.raises(ValueError, match="^method"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")
 
@@ -127,7 +125,7 @@ def test_a_node_budget_gives_the_same_regions_whatever_the_time(study):  # noqa:
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
     budget = dict(check_samples=0, pose_bound_nodes=3, pose_bound_start_depth=2)
-    first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=600, **budget)
+    first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=CAP, **budget)
     assert 1 <= first["pb_nodes"] <= 3 and first["pb_stopped"] in ("nodes", None)
     pose_bound_module._CACHE.clear()
     pose_bound_module._ENUMERATED.clear()
@@ -142,7 +140,7 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
     # α = 10⁻³: Ξ is so small that the two-epoch network's seed pose already leaves it.
-    record = certify(backbone, vertices, seed, alpha=1e-3, check_samples=0, pose_bound_timeout=60)
+    record = certify(backbone, vertices, seed, alpha=1e-3, check_samples=0, pose_bound_timeout=CAP)
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_nodes"] == 0 and record["pb_stopped"] == "witness"
     lam = torch.tensor(record["pb_counterexample"], dtype=torch.float64)
