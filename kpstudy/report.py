@@ -340,13 +340,17 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
             "the allocation is tighter than the network's own accuracy."
         )
     if "pb_holds" in table and table.pb_holds.notna().any():
-        inside = table.seeds_inside.sum()
-        rate = lambda column: "n/a" if not inside else f"{column.sum() / inside:.1%}"  # noqa: E731
+        rate = lambda rate, inside: (  # noqa: E731
+            "n/a" if not inside.sum() else f"{(rate * inside).sum() / inside.sum():.1%}"
+        )
+        pb_inside = table.get("pb_seeds_inside", table.seeds_inside)
         lines.append(
             f"Pose-bound method (reachable keypoint regions → pose decision) on the same "
             f"instances: {int(table.pb_holds.sum())} holds; verified rate "
-            f"{rate(table.pb_verified_rate * table.seeds_inside)} against the allocation's "
-            f"{rate(table.verified_rate * table.seeds_inside)}. It verifies "
+            f"{rate(table.pb_verified_rate, pb_inside)} of the {int(pb_inside.sum())} seeds "
+            "whose argmax → PnP pose lies in Ξ, against the allocation's "
+            f"{rate(table.verified_rate, table.seeds_inside)} of the "
+            f"{int(table.seeds_inside.sum())} where the target model's does. It verifies "
             f"{int(table.pb_only.sum())} instance(s) the allocation method does not, and the "
             f"allocation method {int(table.allocation_only.sum())} it does not. PnP re-solved "
             f"at region corners leaves Ξ for {int(table.pb_nonlinear_outside.sum())} of its "

@@ -12,7 +12,8 @@ its axes and reports, per cell:
   a keypoint outside the heatmap). They count in ``instances`` only: holds + violated +
   unknown + errors = instances, and every other column is over the other instances;
 * ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
-  when no seed is inside);
+  when no seed is inside); ``decided``: the fraction of instances that are ``holds`` or
+  ``violated``;
 * ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
   coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
@@ -23,8 +24,10 @@ its axes and reports, per cell:
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
-  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_verified_rate`` (same
-  denominator), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
+  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_seeds_inside``
+  (seeds whose *argmax* → PnP pose lies in Ξ, ``pb_seed_inside``: the pipeline this
+  method certifies; the target model's ``seed_inside`` for records from before it was
+  stored), ``pb_verified_rate`` (holds among those ÷ those), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
   ``pb_time_unknown_mean`` as above); ``pb_by_witness``, ``pb_by_enumeration``,
   ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before
   it was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
@@ -168,6 +171,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["verified_rate"] = (
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
+        row["decided"] = float((cell["status"] != "unknown").mean()) if len(cell) else np.nan
         if "dv" in cell and len(cell):
             dv = np.concatenate([np.ravel(_list(v)) for v in cell["dv"]])
             row["dv_mean"] = float(dv.mean())
@@ -182,8 +186,11 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_holds"] = int(pb.sum())
             row["pb_violated"] = int((cell["pb_status"] == "violated").sum())
             row["pb_unknown"] = int((cell["pb_status"] == "unknown").sum())
+            row["pb_decided"] = float((cell["pb_status"] != "unknown").mean())
+            pb_inside = _pb_inside(cell, inside)
+            row["pb_seeds_inside"] = int(pb_inside.sum())
             row["pb_verified_rate"] = (
-                float((pb & inside).sum() / inside.sum()) if inside.any() else np.nan
+                float((pb & pb_inside).sum() / pb_inside.sum()) if pb_inside.any() else np.nan
             )
             row["pb_time_mean"] = float(cell["pb_time"].mean())
             row["pb_time_holds_mean"] = _mean(cell["pb_time"][pb])
@@ -211,6 +218,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "errors",
         "violated_at_seed",
         "verified_rate",
+        "decided",
         "dv_mean",
         "dv_zero",
         "time_mean",
@@ -224,6 +232,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_holds",
             "pb_violated",
             "pb_unknown",
+            "pb_decided",
+            "pb_seeds_inside",
             "pb_verified_rate",
             "pb_time_mean",
             "pb_time_holds_mean",
@@ -244,6 +254,15 @@ def _mean(values: pd.Series) -> float:
     """The mean of ``values`` in seconds, NaN when there are none."""
     values = pd.to_numeric(values, errors="coerce").dropna()
     return float(values.mean()) if len(values) else float("nan")
+
+
+def _pb_inside(cell: pd.DataFrame, inside: pd.Series) -> pd.Series:
+    """Per record, whether the seed's argmax → PnP pose lies in Ξ (``pb_seed_inside``: the
+    pipeline the pose-bound method certifies); records from before it was stored count
+    the target model's ``seed_inside``."""
+    if "pb_seed_inside" not in cell:
+        return inside
+    return cell["pb_seed_inside"].where(cell["pb_seed_inside"].notna(), inside).astype(bool)
 
 
 def _list(value) -> list:

@@ -396,3 +396,22 @@ def test_tables_count_the_rules_and_label_the_linearised_bound():
     assert tables.pose_bound_ratios(old, "pb_exact").empty
     labels = tables.plot_pose_bounds(old, "old").axes[0].get_legend_handles_labels()[1]
     assert "linearised bound" in labels and not any(s.startswith("certified") for s in labels)
+
+
+def test_the_pose_bound_rate_counts_the_seeds_its_pipeline_gets_right():
+    records = _records()  # 5 records, every seed inside Ξ for the target model
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_seeds_inside == 5 and row.pb_verified_rate == pytest.approx(2 / 5)
+    assert row.pb_decided == pytest.approx(3 / 5) and row.decided == 1.0
+    # The argmax pipeline right at 3 seeds, both holds among them; the target model at 2.
+    records["pb_seed_inside"] = [s == "holds" or i == 2 for i, s in enumerate(records.pb_status)]
+    records["seed_inside"] = [True, False, False, True, False]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        row = tables.t_global(frame).iloc[0]
+        assert (row.pb_seeds_inside, row.seeds_inside) == (3, 2)
+        assert row.pb_verified_rate == pytest.approx(2 / 3)  # records 0 and 3 of 0, 2, 3
+    # A store mixing records with and without the field: the old ones count the target's.
+    records["pb_seed_inside"] = records["pb_seed_inside"].astype(object)
+    records.loc[[0, 2], "pb_seed_inside"] = None  # target: inside at 0, outside at 2
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_seeds_inside == 2 and row.pb_verified_rate == 1.0  # records 0 and 3
