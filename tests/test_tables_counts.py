@@ -64,11 +64,15 @@ def _both(records):
     return records, pd.read_csv(io.StringIO(records.to_csv(index=False)))
 
 
-@pytest.mark.parametrize("form", ["stored", "csv"])
-def test_counts_rates_and_times_per_cell(form):
-    records = _both(_cells())[form == "csv"]
-    table = tables.summarise(records, ["alpha"]).set_index("alpha")
-    one, two = table.loc[1.0], table.loc[2.0]
+@pytest.fixture(params=["stored", "csv"])
+def cells(request):
+    """The summary rows of :func:`_cells` at α = 1 and α = 2."""
+    table = tables.summarise(_both(_cells())[request.param == "csv"], ["alpha"])
+    return table.set_index("alpha").loc[1.0], table.set_index("alpha").loc[2.0]
+
+
+def test_counts_rates_and_times_per_cell(cells):
+    one, two = cells
     # α = 1: 5 certified + 1 error; seeds inside: rows 0, 1, 3.
     assert (one.instances, one.seeds_inside, one.errors) == (6, 3, 1)
     assert (one.holds, one.violated, one.unknown) == (2, 2, 1)
@@ -85,11 +89,8 @@ def test_counts_rates_and_times_per_cell(form):
     assert (two.time_mean, two.time_std) == (4.0, 0.0)
 
 
-@pytest.mark.parametrize("form", ["stored", "csv"])
-def test_pose_bound_columns_per_cell(form):
-    records = _both(_cells())[form == "csv"]
-    table = tables.summarise(records, ["alpha"]).set_index("alpha")
-    one, two = table.loc[1.0], table.loc[2.0]
+def test_pose_bound_columns_per_cell(cells):
+    one, two = cells
     assert (one.pb_holds, one.pb_violated, one.pb_unknown) == (3, 1, 1)
     assert one.pb_verified_rate == pytest.approx(2 / 3)  # rows 0 and 3 of the 3 inside
     assert one.pb_time_mean == 30.0  # 10 … 50

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import time
+from functools import partial
 
 import torch
 
@@ -107,18 +108,7 @@ def verify(
     _check_dtype(model, input_set)
     graph = trace(model, example_input(input_set))
     spec.check_output(graph.output_size)
-    search = _Search(
-        model,
-        graph,
-        input_set,
-        spec,
-        method,
-        tol,
-        memory,
-        start + timeout,
-        attack_steps,
-        stop_on_violation,
-    )
+    search = _Search(model, graph, input_set, spec, method, tol, memory, start + timeout)
     if batch is None:
         batch = default_batch(graph, input_set, method == "zonotope", memory)
     G = spec.n_groups
@@ -128,7 +118,7 @@ def verify(
         done = branch_and_bound(
             input_set.root(),
             open_groups[None],
-            search.decide,
+            partial(search.decide, attack_steps=attack_steps, stop=stop_on_violation),
             input_set.split,
             batch=batch,
             deadline=start + timeout,
@@ -195,22 +185,9 @@ def _check_dtype(model, input_set) -> None:
 class _Search:
     """Bounds and attacks for one instance, and what they found so far."""
 
-    def __init__(
-        self,
-        model,
-        graph,
-        input_set,
-        spec,
-        method,
-        tol,
-        memory,
-        deadline,
-        attack_steps,
-        stop_on_violation,
-    ):
+    def __init__(self, model, graph, input_set, spec, method, tol, memory, deadline):
         self.model, self.graph, self.set, self.spec = model, graph, input_set, spec
         self.method, self.tol, self.memory, self.deadline = method, tol, memory, deadline
-        self.attack_steps, self.stop_on_violation = attack_steps, stop_on_violation
         self.graph64 = self.model64 = None
         self.rechecks = 0
         #: Per group, the smallest margin the model showed at a point tried inside the set.
@@ -223,24 +200,24 @@ class _Search:
             y0 = graph.forward(example_input(input_set).to(graph.dtype))
         self.tol_abs = tol * (1.0 + float(y0.abs().max()))
 
-    def decide(self, nodes, mask, level: int) -> Step:
+    def decide(self, nodes, mask, level: int, *, attack_steps: int, stop: bool) -> Step:
         """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: the groups still
         open ``(B, G)`` in ``nodes`` after cheap falsification (corners and centroid),
-        bounds, then gradient descent where the bounds fail; stop at a counterexample if
-        ``stop_on_violation`` (the batch then counts as bounded only if it was)."""
+        bounds, then ``attack_steps`` of gradient descent (eight times as many at the
+        root) where the bounds fail. With ``stop``, the search stops at a counterexample
+        (the batch counts as bounded only if its bounds were computed)."""
         self._record(self.probe(nodes, mask & ~self.violated))
         mask = mask & ~self.violated
-        stop = self.counterexample is not None and self.stop_on_violation
-        if not stop:
+        found = self.counterexample is not None and stop
+        if not found:
             margin, proved = self.group_margins(nodes, mask)  # (B, G)
             if self.root_margin is None:
                 self.root_margin = margin[0].clone()
             mask = mask & ~proved
-            steps = self.attack_steps * (8 if level == 0 else 1)
-            self._record(self.descend(nodes, mask, steps))
+            self._record(self.descend(nodes, mask, attack_steps * (8 if level == 0 else 1)))
             mask = mask & ~self.violated
-        found = self.counterexample is not None and self.stop_on_violation
-        return Step(mask, mask.any(1), stop=found, bounded=not stop)
+        stopped = self.counterexample is not None and stop
+        return Step(mask, mask.any(1), stop=stopped, bounded=not found)
 
     def _record(self, found: dict[int, Counterexample]) -> None:
         for g, cex in found.items():
