@@ -31,10 +31,13 @@ def _cells():
         ("holds", False, None, [[0, 1], [0, 0]], 0.0, "unknown", None, near),
     ]
     a2 = [
-        ("violated", False, [0.0, 0.0], [[2, 2], [2, 2]], 4.0, "violated", "witness", None),
-        ("holds", True, None, [[2, 2], [2, 2]], 4.0, "unknown", "enumeration", near),
-        ("holds", True, None, [[2, 2], [2, 2]], 4.0, "holds", "linearised", tx5),
+        ("violated", False, [0.0, 0.0], [[2, 2], [2, 2]], 1.0, "violated", "witness", None),
+        ("holds", True, None, [[2, 2], [2, 2]], 2.0, "unknown", "enumeration", near),
+        ("holds", True, None, [[2, 2], [2, 2]], 6.0, "holds", "linearised", tx5),
     ]
+    # Whether the seed's argmax → PnP pose lies in Ξ (None: a record from before the field,
+    # which counts the target model's `inside`): α = 1 rows 0, 2, 3 (by `inside`), 4.
+    argmax_inside = {1.0: [True, False, True, None, True], 2.0: [None] * 3}
     rows = []
     for alpha, cell in ((1.0, a1), (2.0, a2)):
         for i, (status, inside, lam, dv, t, pb, rule, nonlinear) in enumerate(cell):
@@ -48,6 +51,7 @@ def _cells():
                     dv=dv,
                     time=t,
                     pb_status=pb,
+                    pb_seed_inside=argmax_inside[alpha][i],
                     pb_rule=rule,
                     pb_time=10.0 * (i + 1),
                     pb_nonlinear=nonlinear,
@@ -78,29 +82,46 @@ def test_counts_rates_and_times_per_cell(cells):
     assert (one.holds, one.violated, one.unknown) == (2, 2, 1)
     assert one.violated_at_seed == 1  # row 1 (λ = 0); row 2's λ is not the seed
     assert one.verified_rate == pytest.approx(1 / 3)  # row 0; row 4 holds outside Ξ
+    assert one.decided == pytest.approx(4 / 5)  # all but row 3
     assert one.dv_mean == pytest.approx(13 / 20) and one.dv_zero == pytest.approx(11 / 20)
     assert one.time_mean == pytest.approx(12 / 5)  # 1 + 3 + 2 + 6 + 0, the error left out
     assert one.time_std == pytest.approx(math.sqrt(21.2 / 5))  # population std
+    assert (one.time_holds_mean, one.time_violated_mean, one.time_unknown_mean) == (0.5, 2.5, 6)
     assert one.argmax_outside == pytest.approx(0.08)  # over 'holds': rows 0 (0), 4 (0.16)
     # α = 2: no error; the violated seed's λ read back from CSV text is still λ = 0.
     assert (two.instances, two.seeds_inside, two.errors) == (3, 2, 0)
     assert (two.holds, two.violated, two.unknown, two.violated_at_seed) == (2, 1, 0, 1)
-    assert two.verified_rate == 1.0 and two.dv_mean == 2.0 and two.dv_zero == 0.0
-    assert (two.time_mean, two.time_std) == (4.0, 0.0)
+    assert two.verified_rate == 1.0 and two.decided == 1.0
+    assert two.dv_mean == 2.0 and two.dv_zero == 0.0
+    assert two.time_mean == 3.0 and two.time_std == pytest.approx(math.sqrt(14 / 3))
+    assert (two.time_holds_mean, two.time_violated_mean) == (4.0, 1.0)
+    assert np.isnan(two.time_unknown_mean)  # none
 
 
 def test_pose_bound_columns_per_cell(cells):
     one, two = cells
     assert (one.pb_holds, one.pb_violated, one.pb_unknown) == (3, 1, 1)
-    assert one.pb_verified_rate == pytest.approx(2 / 3)  # rows 0 and 3 of the 3 inside
+    assert one.pb_decided == pytest.approx(4 / 5)  # all but row 4
+    # Its own denominator: seeds whose argmax pose is inside (rows 0, 2, 3, 4), all but
+    # row 4 proved; over the target model's (rows 0, 1, 3) it would be 2/3.
+    assert one.pb_seeds_inside == 4 and one.pb_verified_rate == 0.75
     assert one.pb_time_mean == 30.0  # 10 … 50
+    assert one.pb_time_holds_mean == pytest.approx(80 / 3)  # rows 0, 2, 3
+    assert (one.pb_time_violated_mean, one.pb_time_unknown_mean) == (20.0, 50.0)
     # Row 4 has no pb_rule: an 'unknown' from before the field was decided by 'linearised'.
     assert (one.pb_by_witness, one.pb_by_enumeration, one.pb_by_linearised) == (1, 1, 3)
     assert one.pb_enumeration_holds == 1
     assert one.pb_nonlinear_outside == 1  # row 2: tx = 5 > 4
     assert (one.pb_only, one.allocation_only) == (1, 0)  # row 3; row 4 is outside Ξ
     assert (two.pb_holds, two.pb_violated, two.pb_unknown) == (1, 1, 1)
-    assert two.pb_verified_rate == 0.5 and two.pb_time_mean == 20.0
+    assert two.pb_decided == pytest.approx(2 / 3)
+    assert two.pb_seeds_inside == 2 and two.pb_verified_rate == 0.5  # the target model's
+    assert two.pb_time_mean == 20.0
+    assert (two.pb_time_holds_mean, two.pb_time_violated_mean, two.pb_time_unknown_mean) == (
+        30.0,
+        10.0,
+        20.0,
+    )
     assert (two.pb_by_enumeration, two.pb_enumeration_holds) == (1, 0)  # row 1: unknown
     assert two.pb_nonlinear_outside == 0  # tx = 5 is inside Ξ at α = 2 (8)
     assert (two.pb_only, two.allocation_only) == (0, 1)  # row 1: holds, pose bound unknown
