@@ -89,7 +89,8 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
         Columns ``model`` (``''`` without one), ``method`` (``'alloc (heatmap)'``,
         ``'alloc (paper)'``, ``'alloc'``, ``'pb'``), the cell's :data:`CONDITIONS` present,
         ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts, ``rate`` (holds among seeds
-        inside Ξ ÷ those seeds; NaN without any), times in seconds per instance
+        inside Ξ ÷ those seeds, NaN without any; for ``pb``, seeds whose argmax → PnP pose
+        is inside Ξ, ``pb_seeds_inside``, where the table has them), times in seconds per instance
         (``time_all`` over all instances, ``time_proof`` over ``holds``, ``time_refute``
         over ``violated``, ``time_unknown`` over ``unknown``; NaN where there are none or
         the table has no such column), ``exact_holds`` (the pose-bound method's ``holds``
@@ -109,15 +110,21 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
         alloc_names = "alloc (" + units + ")"
     else:
         alloc_names = pd.Series("alloc", table.index)
-    frames = [_method_frame(table, model, alloc_names, _ALLOC, conditions, None)]
+    frames = [_method_frame(table, model, alloc_names, _ALLOC, conditions, None, "seeds_inside")]
     if "pb_holds" in table:
         rows = table["pb_holds"].notna()
         if rows.any():
             names = pd.Series("pb", table.index)
             frames.append(
                 _method_frame(
-                    table[rows], model[rows], names[rows], _PB, conditions, "pb_enumeration_holds"
-                )
+                    table[rows],
+                    model[rows],
+                    names[rows],
+                    _PB,
+                    conditions,
+                    "pb_enumeration_holds",
+                    "pb_seeds_inside" if "pb_seeds_inside" in table else "seeds_inside",
+                )  # fmt: skip
             )
     out = pd.concat(frames, ignore_index=True)
     order = {m: i for i, m in enumerate(_method_order(out["method"]))}
@@ -129,7 +136,7 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     return out.reset_index(drop=True)
 
 
-def _method_frame(table, model, names, columns, conditions, exact) -> pd.DataFrame:
+def _method_frame(table, model, names, columns, conditions, exact, seeds) -> pd.DataFrame:
     holds, violated, unknown, rate, time_all, proof, refute, undecided = (
         _numeric(table, c) for c in columns
     )
@@ -138,7 +145,7 @@ def _method_frame(table, model, names, columns, conditions, exact) -> pd.DataFra
         data[c] = table[c].to_numpy()
     data.update(
         instances=_numeric(table, "instances"),
-        seeds_inside=_numeric(table, "seeds_inside"),
+        seeds_inside=_numeric(table, seeds),
         holds=holds,
         violated=violated,
         unknown=unknown,
@@ -267,6 +274,11 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
             image = _rate_grid(rate_axes[j], mine, conditions, rows, cols, norm, ours=True)
             name = f"{model}: {method}" if model else method
             rate_axes[j].set_title(f"{name}\n{_counts(mine)}", fontsize="small")
+            if method == "pb" and "pb_seeds_inside" in table:
+                rate_axes[j].set_title(
+                    rate_axes[j].get_title() + "\nrate among seeds whose argmax pose is in Ξ",
+                    fontsize="small",
+                )
         _rate_grid(rate_axes[-1], part, conditions, rows, cols, norm, ours=False)
         rate_axes[-1].set_title(f"paper ({PAPER_HARDWARE})\nverified rate", fontsize="small")
         for ax in rate_axes[1:]:
