@@ -23,7 +23,13 @@ import torch
 from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
 from kpstudy.verify.graph import trace
 from kpstudy.verify.result import Counterexample, Result
-from kpstudy.verify.search import Step, branch_and_bound, check_budget, default_batch
+from kpstudy.verify.search import (
+    Step,
+    absolute_tol,
+    branch_and_bound,
+    check_budget,
+    default_batch,
+)
 from kpstudy.verify.spec import ArgmaxSpec
 
 
@@ -196,9 +202,7 @@ class _Search:
         self.violated = torch.zeros(spec.n_groups, dtype=torch.bool)
         self.counterexample: Counterexample | None = None
         self.root_margin: torch.Tensor | None = None
-        with torch.no_grad():  # float32 rounding scales with the outputs' magnitude
-            y0 = graph.forward(example_input(input_set).to(graph.dtype))
-        self.tol_abs = tol * (1.0 + float(y0.abs().max()))
+        self.tol_abs = absolute_tol(graph, input_set, tol)
 
     def decide(self, nodes, mask, level: int, *, attack_steps: int, stop: bool) -> Step:
         """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: the groups still

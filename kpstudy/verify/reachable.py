@@ -29,7 +29,13 @@ import torch
 
 from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
 from kpstudy.verify.graph import trace
-from kpstudy.verify.search import Step, branch_and_bound, check_budget, default_batch
+from kpstudy.verify.search import (
+    Step,
+    absolute_tol,
+    branch_and_bound,
+    check_budget,
+    default_batch,
+)
 from kpstudy.verify.symbols import l1_rows
 
 METHODS = ("ibp", "forward", "zonotope")
@@ -248,9 +254,7 @@ class _Reach:
         #: Indices undominated in some node closed so far ``(G, S)``.
         self.possible = torch.zeros(self.G, self.S, dtype=torch.bool)
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
-        with torch.no_grad():
-            y0 = graph.forward(example_input(input_set).to(graph.dtype))
-        self.tol_abs = tol * (1.0 + float(y0.abs().max()))
+        self.tol_abs = absolute_tol(graph, input_set, tol)
 
     def witness(self, points: torch.Tensor) -> None:
         """Record the concrete argmax of every group at ``points (P, n)``."""

@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import torch
 
-from kpstudy.verify.bounds import BoundsTimeout, symbol_budget
+from kpstudy.verify.bounds import BoundsTimeout, example_input, symbol_budget
 
 
 class Step(NamedTuple):
@@ -133,6 +133,14 @@ def default_batch(graph, input_set, zonotope: bool, memory: int, widest: int = 0
         rows += symbol_budget(graph, rows)
     biggest = max(widest, *(math.prod(n.shape) for n in graph.nodes))
     return max(1, min(64, memory // (2 * rows * biggest)))
+
+
+def absolute_tol(graph, input_set, tol: float) -> float:
+    """``tol · (1 + max |y(X0)|)``: a margin tolerance that scales with the outputs'
+    magnitude at the set's first point, as float32 rounding does."""
+    with torch.no_grad():
+        y0 = graph.forward(example_input(input_set).to(graph.dtype))
+    return tol * (1.0 + float(y0.abs().max()))
 
 
 def check_budget(timeout, max_nodes, batch) -> None:
