@@ -310,7 +310,10 @@ def certify(
     -------
     dict
         ``image_id``, ``n`` (perturbed vertices), ``status`` (``holds`` / ``violated`` /
-        ``unknown``), ``time`` (verification, s), ``total_time`` (s), ``nodes``,
+        ``unknown``), ``time`` (verification, s), ``total_time`` (s), ``nodes``, ``stopped``
+        (what ended the search early: ``'nodes'`` (``max_nodes`` spent), ``'time'``
+        (``timeout`` fired: the verdict depends on the machine), ``'stop'`` (a
+        counterexample) or None),
         ``group_status`` (per keypoint), ``margin_bracket`` (the worst keypoint's margin
         over the hull: [root lower bound, smallest found by the attacks], see
         :meth:`kpstudy.verify.Result.margin_bracket`), ``dv`` (K × [δu, δv], heatmap
@@ -353,6 +356,7 @@ def certify(
         "status": result.status,
         "time": result.time,
         "nodes": result.nodes,
+        "stopped": result.stats.get("stopped"),
         "group_status": list(result.group_status),
         "margin_bracket": list(result.margin_bracket()),
         "dv": allocation.dv.tolist(),

@@ -365,6 +365,16 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
             f"{int(table.pb_by_enumeration.sum())}, {int(table.pb_enumeration_holds.sum())} of "
             f"them holds; by the linearised bound: {int(table.pb_by_linearised.sum())}."
         )
+    capped = [
+        f"{int(table[column].sum())} of the {name}"
+        for column, name in (("capped", "allocation method's"), ("pb_capped", "pose-bound method's"))
+        if column in table and table[column].notna().any()
+    ]
+    if capped:
+        lines.append(
+            f"The time cap ended the search of {' and '.join(capped)} instances (their "
+            "verdicts depend on the machine's speed; node budgets decided the others)."
+        )
     return lines
 
 

@@ -13,7 +13,8 @@ its axes and reports, per cell:
   unknown + errors = instances, and every other column is over the other instances;
 * ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
   when no seed is inside); ``decided``: the fraction of instances that are ``holds`` or
-  ``violated``;
+  ``violated``; ``capped`` (records that store ``stopped``): instances whose search the
+  time cap ended (their verdict depends on the machine; node budgets decide the others);
 * ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
   coordinates allocated 0 (one-pixel cells);
 * ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
@@ -24,7 +25,8 @@ its axes and reports, per cell:
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
-  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_seeds_inside``
+  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as
+  ``capped``, from ``pb_stopped``), ``pb_seeds_inside``
   (seeds whose *argmax* → PnP pose lies in Ξ, ``pb_seed_inside``: the pipeline this
   method certifies; the target model's ``seed_inside`` for records from before it was
   stored), ``pb_verified_rate`` (holds among those ÷ those), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
@@ -172,6 +174,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
         row["decided"] = float((cell["status"] != "unknown").mean()) if len(cell) else np.nan
+        if "stopped" in cell:
+            row["capped"] = int((cell["stopped"] == "time").sum())
         if "dv" in cell and len(cell):
             dv = np.concatenate([np.ravel(_list(v)) for v in cell["dv"]])
             row["dv_mean"] = float(dv.mean())
@@ -186,7 +190,9 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_holds"] = int(pb.sum())
             row["pb_violated"] = int((cell["pb_status"] == "violated").sum())
             row["pb_unknown"] = int((cell["pb_status"] == "unknown").sum())
-            row["pb_decided"] = float((cell["pb_status"] != "unknown").mean())
+            row["pb_decided"] = float(
+                cell["pb_status"].isin(["holds", "violated"]).sum() / cell["pb_status"].notna().sum()
+            )
             pb_inside = _pb_inside(cell, inside)
             row["pb_seeds_inside"] = int(pb_inside.sum())
             row["pb_verified_rate"] = (
@@ -196,6 +202,9 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_time_holds_mean"] = _mean(cell["pb_time"][pb])
             row["pb_time_violated_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "violated"])
             row["pb_time_unknown_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "unknown"])
+            row["pb_capped"] = (
+                int((cell["pb_stopped"] == "time").sum()) if "pb_stopped" in cell else np.nan
+            )
             rules = _pb_rules(cell)
             row.update({f"pb_by_{r}": int((rules == r).sum()) for r in _PB_RULES})
             row["pb_enumeration_holds"] = int((pb & (rules == "enumeration")).sum())
@@ -233,6 +242,7 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_violated",
             "pb_unknown",
             "pb_decided",
+            "pb_capped",
             "pb_seeds_inside",
             "pb_verified_rate",
             "pb_time_mean",
@@ -247,6 +257,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         ]
     if "argmax_outside" in records:
         columns.append("argmax_outside")
+    if "stopped" in records:
+        columns.insert(columns.index("decided") + 1, "capped")
     return pd.DataFrame(rows, columns=columns)
 
 

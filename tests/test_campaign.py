@@ -49,7 +49,7 @@ def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
     # α = 1e4: every tolerance reaches the heatmap size: one cell per keypoint, nothing to beat.
-    record = certify(backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=16)
+    record = certify(backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=16)
     assert record["status"] == "holds"
     assert np.all(np.asarray(record["dv"]) == 64)
     assert record["group_status"] == ["holds"] * 23
@@ -65,7 +65,7 @@ def test_a_violated_instance_carries_a_point_of_the_hull(study):
     backbone, _ = load_checkpoint(checkpoint)
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
-    record = certify(backbone, vertices, seed, alpha=0.5, timeout=30, check_samples=4)
+    record = certify(backbone, vertices, seed, alpha=0.5, timeout=600, max_nodes=1000, check_samples=4)
     # A two-epoch network misses most keypoints' cells even on the seed image.
     assert record["status"] == "violated"
     lam = np.asarray(record["counterexample"])
@@ -97,7 +97,7 @@ def test_the_paper_reading_allocates_per_image_pixel_and_measures_its_price(stud
     assert np.array_equal(paper.M, heatmap.M)
 
     record = certify(
-        backbone, vertices, seed, alpha=1e4, timeout=30, check_samples=8, tolerance_units="paper"
+        backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=8, tolerance_units="paper"
     )
     assert record["status"] == "holds" and record["tolerance_units"] == "paper"
     hull = paper.hull
@@ -207,7 +207,7 @@ def _table(frame):
 def test_a_killed_campaign_resumes_without_recomputing(study, tmp_path):
     data, checkpoint = study
     instances = _instances(data)
-    settings = Settings(str(checkpoint), str(data), timeout=20, check_samples=4)
+    settings = Settings(str(checkpoint), str(data), timeout=600, nodes=50, check_samples=4)
     straight = run_campaign(instances, tmp_path / "straight.sqlite", settings, progress=False)
     assert len(straight) == len(instances)
 
@@ -240,7 +240,7 @@ def test_dask_and_process_pool_runs_equal_the_local_run(study, tmp_path):
 
     data, checkpoint = study
     instances = _instances(data)[:2]
-    settings = Settings(str(checkpoint), str(data), timeout=20, check_samples=4)
+    settings = Settings(str(checkpoint), str(data), timeout=600, nodes=50, check_samples=4)
     local = _table(run_campaign(instances, tmp_path / "local.sqlite", settings, progress=False))
     pool = run_campaign(instances, tmp_path / "pool.sqlite", settings, workers=2, progress=False)
     assert _table(pool) == local

@@ -108,7 +108,7 @@ def test_marabou_agrees_with_verify_on_simplex_form(tmp_path, marabou):
         model, hull = make_instance(i)
         spec = model.spec
         start = time.perf_counter()
-        ours = verify(model, hull, spec, timeout=30)
+        ours = verify(model, hull, spec, timeout=600, max_nodes=1000)
         ours_time = time.perf_counter() - start
         info = export_instance(tmp_path / str(i), model, hull, spec, input_form="simplex")
         code, x, seconds = marabou.solve(info["onnx"], info["vnnlib"], MARABOU_SECONDS)

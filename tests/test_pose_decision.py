@@ -415,3 +415,28 @@ def test_the_pose_bound_rate_counts_the_seeds_its_pipeline_gets_right():
     records.loc[[0, 2], "pb_seed_inside"] = None  # target: inside at 0, outside at 2
     row = tables.t_global(records).iloc[0]
     assert row.pb_seeds_inside == 2 and row.pb_verified_rate == 1.0  # records 0 and 3
+
+
+def test_the_tables_count_the_searches_the_time_cap_ended():
+    records = _records()
+    records["stopped"] = ["time", "nodes", None, "stop", "time"]
+    records["pb_stopped"] = ["nodes", "time", "witness", None, None]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        row = tables.t_global(frame).iloc[0]
+        assert (row.capped, row.pb_capped) == (2, 1)
+    from kpstudy.report import campaign_summary
+
+    line = campaign_summary(tables.t_global(records))[-1]
+    assert "2 of the allocation method's and 1 of the pose-bound method's" in line
+    # Records from before the fields: no column, no sentence.
+    old = tables.t_global(records.drop(columns=["stopped", "pb_stopped"]))
+    assert "capped" not in old and np.isnan(old.pb_capped.iloc[0])
+    assert not any("time cap" in s for s in campaign_summary(old))
+
+
+def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
+    records = _records()  # holds, unknown, violated, holds, unknown
+    records["pb_status"] = records["pb_status"].astype(object)
+    records.loc[4, "pb_status"] = None  # an instance the pose-bound method did not run
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1

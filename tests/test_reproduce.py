@@ -26,10 +26,12 @@ TINY = replace(
     samples=20,
     seeds=1,
     resnet_seeds=1,
-    timeout=5.0,
-    resnet_timeout=5.0,
+    timeout=60.0,
+    resnet_timeout=60.0,
+    method="forward",
+    nodes=2,
     local_pose_bound={
-        "cnn": dict(pose_bound_timeout=1.0),
+        "cnn": dict(pose_bound_timeout=60.0, pose_bound_nodes=1),
         "cnn_affine": dict(
             pose_bound_method="zonotope",
             pose_bound_timeout=60.0,
@@ -37,7 +39,9 @@ TINY = replace(
             pose_bound_start_depth=1,
         ),
     },
-    global_pose_bound={m: dict(pose_bound_timeout=1.0) for m in ("cnn", "cnn_affine")},
+    global_pose_bound={
+        m: dict(pose_bound_timeout=60.0, pose_bound_nodes=1) for m in ("cnn", "cnn_affine")
+    },
     figure_images=2,
     workers=1,
 )

@@ -155,6 +155,7 @@ def verify(
         "depth": done.depth,
         "batch": batch,
         "timed_out": done.stopped in ("nodes", "time"),
+        "stopped": done.stopped,
         "float64_rechecks": search.rechecks,
         "root_margin": None if search.root_margin is None else search.root_margin.tolist(),
         "attack_margin": search.attack_margin.tolist(),
