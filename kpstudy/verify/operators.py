@@ -75,6 +75,8 @@ line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = 
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import torch
 import torch.nn.functional as F
 
@@ -138,24 +140,27 @@ class Pass:
         return mid if blocks is None else symbols.dense(mid, blocks, self.made)
 
 
-class Rules:
-    """The bound rules of one operator kind (see the module docstring)."""
+class Rules(ABC):
+    """The bound rules of one operator kind (see the module docstring): a subclass writes
+    ``forward`` and ``backward``; ``zonotope`` and ``profile`` have sound defaults."""
 
     #: Whether the zonotope makes up to one error symbol per neuron of such a node.
     makes_symbols = False
 
+    @abstractmethod
     def forward(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
-        raise NotImplementedError
+        """Node ``i``'s value from its inputs' values ``ins`` (interval, forward and
+        ``ibp`` passes)."""
 
     def zonotope(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
         """``forward`` with each input's error symbols moved into its radius (sound; what
         the symbols share is lost at this node)."""
         return self.forward(p, i, [_without_symbols(p, v) for v in ins])
 
+    @abstractmethod
     def backward(self, graph, i: int, a: torch.Tensor, saved) -> tuple[list, torch.Tensor]:
         """``a (B, r, *S_i)`` → one coefficient tensor per input and the constant
         ``(B, r)`` of the pulled-back lower bound."""
-        raise NotImplementedError
 
     def profile(self, low, high, low_s, high_s) -> dict:
         return {}
