@@ -263,22 +263,21 @@ def pose_bound(
     Returns
     -------
     dict
-        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the
-        rule that decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module
-        docstring); ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in Ξ:
-        the pipeline this method certifies is right at the seed); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
-        metres); ``pb_combinations`` (the product of the region sizes: an int, a float
-        above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over every combination,
-        degrees then metres, ``inf`` if some pose is not valid) when they were enumerated,
-        else None; ``pb_nonlinear`` (6: the largest PnP pose error found at region
-        corners; ``inf`` if PnP flags a corner's pose as not valid); ``pb_time`` (s, the
-        search and the enumeration each counted in full); ``pb_nodes``; ``pb_stopped``
-        (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the seed,
-        a vertex or a random image of the hull was already a counterexample and no node
-        was bounded, or None); ``pb_complete``
-        (possible = reached); ``pb_pixels`` (possible pixels per keypoint);
-        ``pb_counterexample`` (λ of the witness image, or None); ``pb_stride``;
-        ``pb_method``.
+        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the rule that
+        decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module docstring);
+        ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in Ξ: the pipeline
+        this method certifies is right at the seed); ``pb_bound`` (6: the linearised bound
+        ``max |M δ|``, degrees then metres); ``pb_combinations`` (the product of the region
+        sizes: an int, a float above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over
+        every combination, degrees then metres, ``inf`` if some pose is not valid) when they
+        were enumerated, else None; ``pb_nonlinear`` (6: the largest PnP pose error found at
+        region corners; ``inf`` if PnP flags a corner's pose as not valid); ``pb_time`` (s,
+        the search, the enumeration and the attack each counted in full); ``pb_nodes``;
+        ``pb_stopped`` (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the seed,
+        a vertex or a random image of the hull was already a counterexample and no node was
+        bounded, or None); ``pb_complete`` (possible = reached); ``pb_pixels`` (possible
+        pixels per keypoint); ``pb_counterexample`` (λ of the witness image, or None);
+        ``pb_stride``; ``pb_method``.
     """
     start = time.perf_counter()
     if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
@@ -289,8 +288,8 @@ def pose_bound(
     V = np.asarray(seed.keypoints, dtype=np.float64)
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
     key = (id(backbone), digest(hull.vertices))
-    base = argmax_keypoints(_heatmaps(backbone, hull)).double().numpy()[0]  # (K, 2) heatmap px
-    seed_inside = bool(np.all(_pose_errors(seed, to_image_pixels(base[None], factors), R, t) <= eps))
+    seed_lam = torch.zeros(1, hull.n, dtype=torch.float64)
+    seed_inside = bool(np.all(_argmax_errors(backbone, hull, seed, R, t, seed_lam) <= eps))
     # Witnesses first: the seed, the hull's corners and random images. One whose argmax
     # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
     early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
@@ -338,6 +337,8 @@ def pose_bound(
         # Over more combinations the regions are the bounds' looseness: attacks on them
         # found nothing on the quick T-local hulls and took ~90 s each (docs/findings.md).
         targets = [np.stack([p[i] for p, i in zip(pixels, farthest)])]
+        with torch.no_grad():  # the seed image's argmax pixels (K, 2): the others stay there
+            base = argmax_keypoints(backbone(hull.image(seed_lam)))[0].double().numpy()
         for k, pixel in single_moves(seed, pixels, base, factors, R, t, eps)[:TARGETED_MOVES]:
             target = np.full_like(base, -1.0)
             target[k] = pixel
@@ -448,12 +449,6 @@ def _targeted(backbone, hull, targets, starts) -> tuple[torch.Tensor | None, flo
 
     key = (id(backbone), digest(targets, hull.vertices, *starts))
     return remember(_ATTACKS, key, make, 4)[1:]
-
-
-def _heatmaps(backbone, hull) -> torch.Tensor:
-    """The backbone's heatmaps ``(1, K, H, W)`` of the hull's seed image (λ = 0)."""
-    with torch.no_grad():
-        return backbone(hull.image(torch.zeros(1, hull.n, dtype=torch.float64)))
 
 
 _CACHE: dict = {}

@@ -367,7 +367,10 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
         )
     capped = [
         f"{int(table[column].sum())} of the {name}"
-        for column, name in (("capped", "allocation method's"), ("pb_capped", "pose-bound method's"))
+        for column, name in (
+            ("capped", "allocation method's"),
+            ("pb_capped", "pose-bound method's"),
+        )
         if column in table and table[column].notna().any()
     ]
     if capped:

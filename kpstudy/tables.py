@@ -25,18 +25,18 @@ its axes and reports, per cell:
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
-  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as
-  ``capped``, from ``pb_stopped``), ``pb_seeds_inside``
-  (seeds whose *argmax* → PnP pose lies in Ξ, ``pb_seed_inside``: the pipeline this
-  method certifies; the target model's ``seed_inside`` for records from before it was
-  stored), ``pb_verified_rate`` (holds among those ÷ those), ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
+  ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as ``capped``,
+  from ``pb_stopped``), ``pb_seeds_inside`` (seeds whose *argmax* → PnP pose lies in Ξ,
+  ``pb_seed_inside``: the pipeline this method certifies; the target model's ``seed_inside``
+  for records from before it was stored), ``pb_verified_rate`` (holds among those ÷ those),
+  ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
   ``pb_time_unknown_mean`` as above); ``pb_by_witness``, ``pb_by_enumeration``,
-  ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before
-  it was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
-  otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those
-  by enumeration (exact for the argmax → PnP pipeline); ``pb_nonlinear_outside``
-  (``holds`` whose PnP re-solved at region corners leaves Ξ: the linearised bound's error,
-  which the allocation method shares; never a ``holds`` by enumeration) and ``pb_only`` /
+  ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before it
+  was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
+  otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those by
+  enumeration (exact for the argmax → PnP pipeline); ``pb_nonlinear_outside`` (``holds``
+  whose PnP re-solved at region corners leaves Ξ: the linearised bound's error, which the
+  allocation method shares; never a ``holds`` by enumeration) and ``pb_only`` /
   ``allocation_only``: seeds inside Ξ that one method verifies and the other does not.
 """
 
@@ -191,7 +191,8 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_violated"] = int((cell["pb_status"] == "violated").sum())
             row["pb_unknown"] = int((cell["pb_status"] == "unknown").sum())
             row["pb_decided"] = float(
-                cell["pb_status"].isin(["holds", "violated"]).sum() / cell["pb_status"].notna().sum()
+                cell["pb_status"].isin(["holds", "violated"]).sum()
+                / cell["pb_status"].notna().sum()
             )
             pb_inside = _pb_inside(cell, inside)
             row["pb_seeds_inside"] = int(pb_inside.sum())

@@ -49,7 +49,9 @@ def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
     # α = 1e4: every tolerance reaches the heatmap size: one cell per keypoint, nothing to beat.
-    record = certify(backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=16)
+    record = certify(
+        backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=16
+    )
     assert record["status"] == "holds"
     assert np.all(np.asarray(record["dv"]) == 64)
     assert record["group_status"] == ["holds"] * 23
@@ -65,7 +67,9 @@ def test_a_violated_instance_carries_a_point_of_the_hull(study):
     backbone, _ = load_checkpoint(checkpoint)
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
-    record = certify(backbone, vertices, seed, alpha=0.5, timeout=600, max_nodes=1000, check_samples=4)
+    record = certify(
+        backbone, vertices, seed, alpha=0.5, timeout=600, max_nodes=1000, check_samples=4
+    )
     # A two-epoch network misses most keypoints' cells even on the seed image.
     assert record["status"] == "violated"
     lam = np.asarray(record["counterexample"])
@@ -97,7 +101,14 @@ def test_the_paper_reading_allocates_per_image_pixel_and_measures_its_price(stud
     assert np.array_equal(paper.M, heatmap.M)
 
     record = certify(
-        backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=8, tolerance_units="paper"
+        backbone,
+        vertices,
+        seed,
+        alpha=1e4,
+        timeout=600,
+        max_nodes=1000,
+        check_samples=8,
+        tolerance_units="paper",
     )
     assert record["status"] == "holds" and record["tolerance_units"] == "paper"
     hull = paper.hull

@@ -229,7 +229,9 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
     seed = SeedImage.from_keypoint_set(data, 0)
     image = data.images[0]
     vertices = np.stack([image, np.clip(image + 1.0, 0, 255), np.clip(image - 1.0, 0, 255)])
-    record = certify(backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=4)
+    record = certify(
+        backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=4
+    )
     assert record["status"] == "holds"
 
 

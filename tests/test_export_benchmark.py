@@ -117,7 +117,15 @@ def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
     (image_id, *_) = sorted({i.image_id for i in grid(data, "blocks", alphas=[1], kappas=[1])})
     vertices = hull_vertices(data, image_id, "blocks", 2, True, 0)
     built = build_instance(backbone, vertices, seed_of(image_id), alpha=0.5)
-    record = certify(backbone, vertices, seed_of(image_id), alpha=0.5, timeout=600, max_nodes=1000, check_samples=0)
+    record = certify(
+        backbone,
+        vertices,
+        seed_of(image_id),
+        alpha=0.5,
+        timeout=600,
+        max_nodes=1000,
+        check_samples=0,
+    )
     assert record["dv"] == built.allocation.dv.tolist() and record["n"] == built.hull.n == 2
     assert built.spec is built.proxy.spec and built.inputs.shape == (3, 3, 64, 64)
     assert built.M.shape == (6, 46) and built.xi.shape == (6,) and built.R.shape == (3, 3)

@@ -234,13 +234,20 @@ def test_single_moves_are_the_possible_pixels_that_alone_leave_the_tolerance(sce
     seed, R, t, factors, centers = scene
     eps, _ = _far_tolerance(scene)
     pixels = _regions_with(centers, [(0, (8, 0)), (0, (1, 0)), (3, (0, 1))])
-    moves = pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, eps)
+    moves = pb.single_moves(
+        seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, eps
+    )
     assert [(k, tuple(p)) for k, p in moves] == [(0, tuple(centers[0] + [8, 0]))]
     wide = np.full(6, 1e6)
-    assert pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide) == []
+    assert (
+        pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide)
+        == []
+    )
 
 
-def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image(scene, monkeypatch):
+def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image(
+    scene, monkeypatch
+):
     seed, R, t, factors, centers = scene
     eps, _ = _far_tolerance(scene)
     # Keypoint 0 can go 8 px right (outside Ξ) and keypoint 1 one pixel down; the model moves

@@ -34,7 +34,11 @@ def readme_commands(text: str) -> list[list[str]]:
 def test_the_readme_shows_the_worked_example():
     commands = readme_commands(README.read_text())
     subcommands = {tuple(c[2:4]) for c in commands}
-    assert {("kpstudy", "evaluate"), ("kpstudy", "campaign"), ("data_gen", "dataset")} <= subcommands
+    assert {
+        ("kpstudy", "evaluate"),
+        ("kpstudy", "campaign"),
+        ("data_gen", "dataset"),
+    } <= subcommands
     assert all(Path(c[0]).name == "python" for c in commands)
 
 

@@ -51,7 +51,8 @@ class Result:
     stats : dict
         Search statistics: the method, depth, node batch, whether the budget ran out
         (``timed_out``) and what ended the search early (``stopped``: ``'nodes'``,
-        ``'time'``, ``'stop'`` at a counterexample, or None), float64 rechecks, and per group two ends of its smallest margin over the set:
+        ``'time'``, ``'stop'`` at a counterexample, or None), float64 rechecks, and per
+        group two ends of its smallest margin over the set:
         ``root_margin``, the root node's lower bound (None if no node was bounded), and
         ``attack_margin``, the smallest margin the concrete model showed at the points
         tried (vertices, centroids, gradient descent), an upper bound. For an
