@@ -263,21 +263,22 @@ def pose_bound(
     Returns
     -------
     dict
-        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the rule that
-        decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module docstring);
-        ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in Ξ: the pipeline
-        this method certifies is right at the seed); ``pb_bound`` (6: the linearised bound
-        ``max |M δ|``, degrees then metres); ``pb_combinations`` (the product of the region
-        sizes: an int, a float above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over
-        every combination, degrees then metres, ``inf`` if some pose is not valid) when they
-        were enumerated, else None; ``pb_nonlinear`` (6: the largest PnP pose error found at
-        region corners; ``inf`` if PnP flags a corner's pose as not valid); ``pb_time`` (s,
-        the search, the enumeration and the attack each counted in full); ``pb_nodes``;
-        ``pb_stopped`` (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the seed,
-        a vertex or a random image of the hull was already a counterexample and no node was
-        bounded, or None); ``pb_complete`` (possible = reached); ``pb_pixels`` (possible
-        pixels per keypoint); ``pb_counterexample`` (λ of the witness image, or None);
-        ``pb_stride``; ``pb_method``.
+        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the rule
+        that decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module
+        docstring); ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in
+        Ξ: the pipeline this method certifies is right at the seed); ``pb_bound`` (6:
+        the linearised bound ``max |M δ|``, degrees then metres); ``pb_combinations``
+        (the product of the region sizes: an int, a float above 2⁵³); ``pb_exact`` (6:
+        the largest PnP pose error over every combination, degrees then metres, ``inf``
+        if some pose is not valid) when they were enumerated, else None;
+        ``pb_nonlinear`` (6: the largest PnP pose error found at region corners; ``inf``
+        if PnP flags a corner's pose as not valid); ``pb_time`` (s, the search, the
+        enumeration and the attack each counted in full); ``pb_nodes``; ``pb_stopped``
+        (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the
+        seed, a vertex or a random image of the hull was already a counterexample and no
+        node was bounded, or None); ``pb_complete`` (possible = reached); ``pb_pixels``
+        (possible pixels per keypoint); ``pb_counterexample`` (λ of the witness image,
+        or None); ``pb_stride``; ``pb_method``.
     """
     start = time.perf_counter()
     if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
