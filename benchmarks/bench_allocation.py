@@ -20,7 +20,7 @@ import numpy as np
 
 from benchmarks.common import HEATMAP_SCALE, emit, scene
 from kpstudy.allocation import _HIGHS_OPTIONS, allocate_many, allocate_tolerances
-from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.geometry import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.sensitivity import pose_sensitivity
 

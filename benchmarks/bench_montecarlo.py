@@ -16,12 +16,8 @@ import numpy as np
 from benchmarks.bench_pnp import cv2_loop_guess
 from benchmarks.common import HEATMAP_SCALE, emit, scene, timed
 from kpstudy.allocation import allocate_many
-from kpstudy.montecarlo import (
-    EPS_R,
-    EPS_T,
-    probabilistic_completeness,
-    probabilistic_soundness,
-)
+from kpstudy.geometry import EPS_R, EPS_T
+from kpstudy.montecarlo import probabilistic_completeness, probabilistic_soundness
 from kpstudy.pnp import solve_pnp
 from kpstudy.sensitivity import pose_sensitivity
 

@@ -20,11 +20,10 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from benchmarks.common import emit, study_hulls
-from kpstudy.preprocess import normalise, resize_to_input
+from kpstudy.preprocess import to_model_input
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ConvexHull, bound_profile
 
@@ -74,8 +73,7 @@ def main(argv=None):
         net.eval()
         for hull_args in hulls:
             V = hull_args["V"]
-            x = normalise(np.stack([resize_to_input(v, net.input_size) for v in V]))
-            full = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+            full = to_model_input(V, size=net.input_size)
             for scale in args.scales:
                 hull = ConvexHull(torch.cat([full[:1], full[:1] + scale * (full[1:] - full[:1])]))
                 run = {

@@ -17,14 +17,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from benchmarks.bound_profile import _checkpoint
 from benchmarks.common import emit, study_hulls
 from kpstudy.data import load_keypoint_set
 from kpstudy.models.proxy import build_proxy
 from kpstudy.pooling import keypoint_pooling
-from kpstudy.preprocess import normalise, resize_to_input, scale_factors, to_input_pixels
+from kpstudy.preprocess import scale_factors, to_input_pixels, to_model_input
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ConvexHull, reachable_argmax
 
@@ -56,8 +55,7 @@ def main(argv=None):
             centers = np.clip(np.rint(to_input_pixels(uv, factors)), 0, hm - 1).astype(np.int64)
             pooling = keypoint_pooling(centers, np.zeros_like(centers), (hm, hm))
             proxy = build_proxy(net, pooling, centers).eval()
-            x = normalise(np.stack([resize_to_input(v, net.input_size) for v in hull_args["V"]]))
-            hull = ConvexHull(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous())
+            hull = ConvexHull(to_model_input(hull_args["V"], size=net.input_size))
             start = time.perf_counter()
             regions = reachable_argmax(
                 proxy,

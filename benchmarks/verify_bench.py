@@ -38,6 +38,7 @@ from benchmarks.common import emit, timed
 from kpstudy.data import load_keypoint_set
 from kpstudy.models import HeatmapCNN, build_proxy
 from kpstudy.pooling import keypoint_pooling
+from kpstudy.preprocess import to_model_input
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
 
@@ -108,7 +109,6 @@ def study_instances(net, data: Path, kind: str, count: int, ms, seed: int):
     ``m/non-overlapping`` …, where the set has that many); contrast: every stored level
     (label the level). (The study's brightness set is ``--perturbation brightness``.)"""
     from data_gen.perturb import DEFAULT_LEVELS, hull_vertices, load_perturbations
-    from kpstudy.preprocess import normalise, resize_to_input
 
     rows = load_perturbations(data, kind)["images"]
     out = []
@@ -130,8 +130,7 @@ def study_instances(net, data: Path, kind: str, count: int, ms, seed: int):
                 if m <= sum(r["overlapping"] == overlap for r in mine)
             ]
         for label, V in hulls:
-            x = normalise(np.stack([resize_to_input(v, 64) for v in V]))
-            x = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+            x = to_model_input(V, size=64)
             out.append((label, *proxy_instance(net, x[0]), x))
     return out
 
@@ -189,7 +188,7 @@ def main(argv=None):
     images = None
     if args.data and args.perturbation not in STUDY_KINDS:
         data = load_keypoint_set(args.data, "test", 64, limit=args.seeds)
-        images = torch.from_numpy(data.images).permute(0, 3, 1, 2) / 255.0
+        images = to_model_input(data.images)
     if args.perturbation in STUDY_KINDS:
         if not args.data:
             raise SystemExit("--data: needed for the study's perturbation sets")

@@ -23,8 +23,7 @@ from matplotlib.patches import Rectangle
 
 from kpstudy import _checks
 from kpstudy.allocation import allocate_tolerances
-from kpstudy.geometry import euler_from_matrix, matrix_from_euler, project_batch
-from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.geometry import euler_from_matrix, matrix_from_euler, project_batch, tolerance
 from kpstudy.pnp import solve_pnp
 from kpstudy.preprocess import scale_factors
 from kpstudy.sensitivity import pose_sensitivity
@@ -117,9 +116,8 @@ def allocation_frame(
         R, t = solve_pnp(P, V[i], Ks[i])
         M = pose_sensitivity(P, V[i], Ks[i], R, t, scale=scale)
         for alpha in alphas:
-            a = allocate_tolerances(
-                M, alpha * EPS_R, alpha * EPS_T, kappa=kappa, w1=w1, w2=w2, max_dv=max_dv
-            )
+            eps_r, eps_t = np.split(tolerance(alpha), 2)
+            a = allocate_tolerances(M, eps_r, eps_t, kappa=kappa, w1=w1, w2=w2, max_dv=max_dv)
             blocks.append((i, alpha, a.dv))
     return pd.DataFrame(
         {
@@ -266,7 +264,7 @@ def keypoint_deviation_samples(points_3d, keypoints, K, alpha, n_samples, seed, 
     sx, sy = _checks.positive(scale, "scale", (2,))
 
     R, t = solve_pnp(P, V, K)
-    eps = alpha * np.concatenate([EPS_R, EPS_T])
+    eps = tolerance(alpha)
     dxi = np.random.default_rng(seed).uniform(-1.0, 1.0, (n_samples, 6)) * eps
     R_s = matrix_from_euler(euler_from_matrix(R) + dxi[:, :3])  # (S, 3, 3)
     t_s = t + dxi[:, 3:]

@@ -35,18 +35,17 @@ from kpstudy import _checks
 from kpstudy._memo import digest, remember
 from kpstudy.allocation import Allocation, allocate_tolerances, allocation_scale
 from kpstudy.evaluate import pose_errors
+from kpstudy.geometry import inside_tolerance, tolerance
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.montecarlo import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
 from kpstudy.pose_bound import argmax_outside, pose_bound
 from kpstudy.preprocess import (
-    normalise,
-    resize_to_input,
     scale_factors,
     to_image_pixels,
     to_input_pixels,
+    to_model_input,
 )
 from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
@@ -203,7 +202,8 @@ def build_instance(
         )
     s, hm = backbone.input_size, backbone.heatmap_size
     P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
-    eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+    xi = tolerance(alpha)
+    eps_r, eps_t = xi[:3], xi[3:]
 
     nominal = solve_pnp(P, V, K)
     if not nominal.valid:
@@ -224,8 +224,7 @@ def build_instance(
             "(only seeds with every keypoint in the image can be certified)"
         )
     proxy = build_proxy(backbone, keypoint_pooling(centers, allocation.dv, (hm, hm)), centers)
-    images = np.stack([resize_to_input(v, s) for v in vertices])
-    x = torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous()
+    x = to_model_input(vertices, size=s)
     return VerificationInstance(
         proxy=proxy.eval(),
         hull=ConvexHull(x),
@@ -237,7 +236,7 @@ def build_instance(
         R=R,
         t=t,
         M=M,
-        xi=np.concatenate([eps_r, eps_t]),
+        xi=xi,
     )
 
 
@@ -363,7 +362,7 @@ def certify(
         "delta": allocation.delta,
         "objective": allocation.objective,
         "seed_error": seed_error.tolist(),
-        "seed_inside": bool(np.all(seed_error <= xi)),
+        "seed_inside": bool(inside_tolerance(seed_error, xi)),
         "counterexample": (
             None if result.counterexample is None else result.counterexample.point.tolist()
         ),
@@ -375,7 +374,7 @@ def certify(
     if result.status == "holds" and check_samples:
         images = hull.image(hull.sample(int(check_samples), sample_seed))
         errors = target_pose_errors(backbone, images, seed, R, t)
-        record["empirical_inside"] = float(np.mean(np.all(errors <= xi, axis=1)))
+        record["empirical_inside"] = float(np.mean(inside_tolerance(errors, xi)))
         outside = argmax_outside(backbone, images, seed, R, t, xi)
         record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)

@@ -14,13 +14,11 @@ import numpy as np
 import pandas as pd
 
 from kpstudy.data import load_keypoint_set
-from kpstudy.geometry import pose_error
-from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.geometry import POSE_AXES, inside_tolerance, pose_error, tolerance
 from kpstudy.pnp import solve_pnp
 from kpstudy.train import load_checkpoint, pck, predict
 
 ALPHAS = (0.5, 1.0, 1.5, 2.0)
-AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 
 
 def pose_errors(points_3d, image_keypoints, K, R, t) -> np.ndarray:
@@ -42,7 +40,7 @@ def pose_errors(points_3d, image_keypoints, K, R, t) -> np.ndarray:
 
 def inside(errors: np.ndarray, alpha: float) -> np.ndarray:
     """Which rows of ``errors (N, 6)`` lie inside Ξ scaled by ``alpha``."""
-    return (errors <= alpha * np.concatenate([EPS_R, EPS_T])).all(-1)
+    return inside_tolerance(errors, tolerance(alpha))
 
 
 def evaluate(checkpoint, data_dir, split: str = "test", alphas=ALPHAS, *, limit=None):
@@ -78,12 +76,12 @@ def evaluate(checkpoint, data_dir, split: str = "test", alphas=ALPHAS, *, limit=
     summary, per_image = [], []
     for head, uv in heads.items():
         errors = pose_errors(data.points_3d, data.to_image_pixels(uv), data.K, data.R, data.t)
-        frame = pd.DataFrame(errors, columns=list(AXES))
+        frame = pd.DataFrame(errors, columns=list(POSE_AXES))
         frame.insert(0, "head", head)
         frame.insert(0, "image_id", data.image_ids)
         frame["pnp_valid"] = np.isfinite(errors).all(1)
         row = dict(head=head, **pck(uv, data.keypoints, data.visibility > 0))
-        row.update({f"median_{a}": float(np.median(errors[:, j])) for j, a in enumerate(AXES)})
+        row.update({f"median_{a}": float(np.median(errors[:, j])) for j, a in enumerate(POSE_AXES)})
         for alpha in alphas:
             frame[f"inside_xi@{alpha:g}"] = inside(errors, alpha)
             row[f"inside_xi@{alpha:g}"] = float(frame[f"inside_xi@{alpha:g}"].mean())

@@ -1,4 +1,5 @@
-"""Camera geometry: pinhole projection, the Euler-angle convention and the pose error.
+"""Camera geometry: pinhole projection, the Euler-angle convention, the pose error and
+the pose tolerance box Ξ.
 
 Conventions (docs/design.md §3): OpenCV pinhole camera (x right, y down, z forward); a pose
 ``(R, t)`` maps object to camera, ``x_c = R p + t``; metres and degrees; pixel
@@ -19,6 +20,34 @@ from scipy.spatial.transform import Rotation
 from kpstudy import _checks
 
 EULER_SEQ = "xyz"
+#: The six pose axes, in the order of ``ξ`` and of every pose error.
+POSE_AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
+#: The paper's tolerance scale: ``Ξ = {|δξ| ≤ α·[EPS_R, EPS_T]}`` (degrees, metres).
+EPS_R = np.array([10.0, 10.0, 10.0])
+EPS_T = np.array([4.0, 4.0, 20.0])
+
+
+def tolerance(alpha: float) -> np.ndarray:
+    """Ξ's half-widths ``α·[EPS_R, EPS_T]``, shape (6,): degrees, then metres.
+
+    >>> tolerance(1.5).tolist()
+    [15.0, 15.0, 15.0, 6.0, 6.0, 30.0]
+    """
+    return float(alpha) * np.concatenate([EPS_R, EPS_T])
+
+
+def inside_tolerance(errors, eps) -> np.ndarray:
+    """Which pose errors ``(..., 6)`` (degrees, metres; numpy or torch) lie inside Ξ with
+    half-widths ``eps (6,)``: every axis within (bounds included). NaN or infinite errors
+    lie outside. Returns a bool array (or tensor) of shape ``(...)``.
+
+    >>> inside_tolerance(np.array([[1.0, 0, 0, 0, 0, 0], [np.inf, 0, 0, 0, 0, 0]]),
+    ...                  tolerance(1.0)).tolist()
+    [True, False]
+    """
+    if isinstance(errors, torch.Tensor):
+        return (errors <= torch.as_tensor(eps, dtype=errors.dtype)).all(-1)
+    return np.all(np.asarray(errors) <= np.asarray(eps), axis=-1)
 
 
 def project(P, R, t, K) -> np.ndarray:

@@ -23,16 +23,14 @@ from kpstudy import _checks
 from kpstudy.allocation import allocate_many, allocation_scale
 from kpstudy.geometry import (
     euler_from_matrix_torch,
+    inside_tolerance,
     matrix_from_euler_torch,
     project_batch,
+    tolerance,
     wrap_degrees,
 )
 from kpstudy.pnp import solve_pnp, solve_pnp_batch
 from kpstudy.sensitivity import pose_sensitivity
-
-#: Paper's tolerance scale: ε_r = α·EPS_R (degrees), ε_t = α·EPS_T (metres).
-EPS_R = np.array([10.0, 10.0, 10.0])
-EPS_T = np.array([4.0, 4.0, 20.0])
 
 #: Stopping tolerance of the soundness PnP solves (pixels). Newton's last step is below
 #: it, so the pose is within far less of its optimum; on 5e5 paper-like problems the
@@ -205,12 +203,12 @@ def soundness_completeness_table(
     M = [pose_sensitivity(P, V[i], K[i], R[i], t[i], scale=reading) for i in range(I)]
     rows = []
     grid = [(kappa, alpha) for kappa in kappas for alpha in alphas]
-    problems = [(m, a * EPS_R, a * EPS_T, k) for k, a in grid for m in M]
+    problems = [(m, *np.split(tolerance(a), 2), k) for k, a in grid for m in M]
     allocations = allocate_many(problems, workers=workers, w1=w1, w2=w2, max_dv=max_dv)
     for c, (kappa, alpha) in enumerate(
         tqdm(grid, desc="T-prob (kappa, alpha)", disable=not progress)
     ):
-        eps_r, eps_t = alpha * EPS_R, alpha * EPS_T
+        eps_r, eps_t = np.split(tolerance(alpha), 2)
         dv = np.stack([a.dv for a in allocations[c * I : (c + 1) * I]])
         args = (P, V, K, R, t, dv, eps_r, eps_t)
         s = probabilistic_soundness(
@@ -243,8 +241,7 @@ def _inside(R_hat, t_hat, R, t, eps) -> torch.Tensor:
     """Pose error inside Ξ, per row: ``(B,)`` bool."""
     dr = wrap_degrees(euler_from_matrix_torch(R_hat) - euler_from_matrix_torch(R))
     dt = (t_hat - t).abs()
-    e = torch.from_numpy(eps)
-    return (dr <= e[:3]).all(-1) & (dt <= e[3:]).all(-1)
+    return inside_tolerance(torch.cat([dr, dt], -1), eps)
 
 
 def _rng(seed: int, image: int) -> np.random.Generator:

@@ -58,7 +58,7 @@ import numpy as np
 import torch
 
 from kpstudy._memo import digest, remember
-from kpstudy.geometry import euler_from_matrix, wrap_degrees
+from kpstudy.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.proxy import build_proxy
 from kpstudy.pnp import solve_pnp_batch
@@ -290,7 +290,8 @@ def pose_bound(
     centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
     key = (id(backbone), digest(hull.vertices))
     seed_lam = torch.zeros(1, hull.n, dtype=torch.float64)
-    seed_inside = bool(np.all(_argmax_errors(backbone, hull, seed, R, t, seed_lam) <= eps))
+    seed_errors = _argmax_errors(backbone, hull, seed, R, t, seed_lam)
+    seed_inside = bool(inside_tolerance(seed_errors, eps).all())
     # Witnesses first: the seed, the hull's corners and random images. One whose argmax
     # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
     early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
@@ -328,12 +329,12 @@ def pose_bound(
         begin = time.perf_counter()
         exact, farthest, seconds = _enumerated(seed, positions, R, t, eps)
         cached += seconds - (time.perf_counter() - begin)
-        inside = np.all(kappa * exact <= eps)
+        inside = inside_tolerance(kappa * exact, eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
     else:
-        inside = np.all(kappa * bound <= eps)
+        inside = inside_tolerance(kappa * bound, eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
-    if status == "unknown" and exact is not None and not np.all(exact <= eps):
+    if status == "unknown" and exact is not None and not inside_tolerance(exact, eps):
         # Can an image reach a combination outside Ξ?
         # Over more combinations the regions are the bounds' looseness: attacks on them
         # found nothing on the quick T-local hulls and took ~90 s each (docs/findings.md).
@@ -395,7 +396,8 @@ def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
     Ξ (half-widths ``eps``), else None. A point found in the model's dtype counts only if
     the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
     lam = torch.unique(torch.stack(list(points)), dim=0)
-    outside = np.flatnonzero(~np.all(_argmax_errors(backbone, hull, seed, R, t, lam) <= eps, 1))
+    errors = _argmax_errors(backbone, hull, seed, R, t, lam)
+    outside = np.flatnonzero(~inside_tolerance(errors, eps))
     if not outside.size:
         return None
     if next(backbone.parameters(), torch.empty(0)).dtype == torch.float64:
@@ -413,7 +415,7 @@ def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
     """Indices of ``images (B, 3, s, s)`` (normalised model inputs) whose argmax → PnP
     pose lies outside Ξ (half-widths ``eps``, 6: degrees, metres) around ``(R, t)``."""
     errors = argmax_pose_errors(backbone, images, seed, R, t)
-    return np.flatnonzero(~np.all(errors <= eps, axis=1))
+    return np.flatnonzero(~inside_tolerance(errors, eps))
 
 
 def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:

@@ -3,14 +3,16 @@
 The whole image is resized to the model input (64×64 for the CNN, 256×256 for
 ResNet-18) by pixel-area averaging, a linear map: the resized convex hull of images
 is the convex hull of the resized images. Values stay in [0, 255] until
-:func:`normalise`. A resize by factors ``(sx, sy)`` maps pixel coordinates as
-``u' = (u + 0.5)·sx − 0.5`` (docs/design.md §3).
+:func:`to_model_input`, the one step from images to the network's input tensor. A
+resize by factors ``(sx, sy)`` maps pixel coordinates as ``u' = (u + 0.5)·sx − 0.5``
+(docs/design.md §3).
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 
 
 def _size(size) -> tuple[int, int]:
@@ -48,6 +50,20 @@ def to_image_pixels(uv: np.ndarray, factors) -> np.ndarray:
     return (np.asarray(uv, float) + 0.5) / np.asarray(factors, float) - 0.5
 
 
-def normalise(images: np.ndarray) -> np.ndarray:
-    """[0, 255] → [0, 1] (the network's input scale)."""
-    return np.asarray(images, np.float32) / 255.0
+def to_model_input(images, size=None) -> torch.Tensor:
+    """Images ``(N, H, W, 3)`` in [0, 255] (uint8 or float) → the network's input
+    ``(N, 3, h, w)``: float32 in [0, 1], contiguous.
+
+    With ``size`` (``s`` or ``(w, h)``) each image is first resized to it
+    (:func:`resize_to_input`); without, the images must already have the input size.
+
+    >>> to_model_input(np.full((2, 4, 6, 3), 255, np.uint8), size=2).shape
+    torch.Size([2, 3, 2, 2])
+    """
+    images = np.asarray(images)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected (N, H, W, 3) images, got shape {images.shape}")
+    if size is not None:
+        images = np.stack([resize_to_input(image, size) for image in images])
+    x = torch.from_numpy(np.asarray(images, np.float32) / np.float32(255.0))
+    return x.permute(0, 3, 1, 2).contiguous()

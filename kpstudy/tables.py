@@ -48,6 +48,8 @@ import re
 import numpy as np
 import pandas as pd
 
+from kpstudy.geometry import POSE_AXES, tolerance
+
 __all__ = [
     "PAPER_T_GLOBAL",
     "PAPER_T_LOCAL",
@@ -136,7 +138,6 @@ PAPER_T_PROB = {
 
 _STATUSES = ("holds", "violated", "unknown")
 _PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.pose_bound's pb_rule
-POSE_AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 
 
 def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -303,9 +304,7 @@ def _pb_rules(cell: pd.DataFrame) -> pd.Series:
 
 def _eps(cell: pd.DataFrame) -> list[np.ndarray]:
     """Ξ's half-widths ``(6,)`` of each record, from its α."""
-    from kpstudy.montecarlo import EPS_R, EPS_T
-
-    return [a * np.r_[EPS_R, EPS_T] for a in cell["alpha"]]
+    return [tolerance(a) for a in cell["alpha"]]
 
 
 def t_prob(table: pd.DataFrame) -> pd.DataFrame:
@@ -422,8 +421,6 @@ def pose_bound_ratios(records: pd.DataFrame, column: str = "pb_bound") -> pd.Dat
     were enumerated, ``inf`` where some pose is not valid). Columns: the hull's fields and
     ``roll, pitch, yaw, tx, ty, tz``.
     """
-    from kpstudy.montecarlo import EPS_R, EPS_T
-
     if column not in ("pb_bound", "pb_exact"):
         raise ValueError(f"column: expected 'pb_bound' or 'pb_exact', got {column!r}")
     fields = ("model", "kind", "image_id", "m", "overlapping", "level")
@@ -432,7 +429,7 @@ def pose_bound_ratios(records: pd.DataFrame, column: str = "pb_bound") -> pd.Dat
         return pd.DataFrame(columns=[*hull, *POSE_AXES])
     rows = records.dropna(subset=[column]).drop_duplicates(hull)
     values = np.array([_list(b) for b in rows[column]], dtype=np.float64)
-    out = pd.DataFrame(values.reshape(-1, 6) / np.r_[EPS_R, EPS_T], columns=POSE_AXES)
+    out = pd.DataFrame(values.reshape(-1, 6) / tolerance(1.0), columns=POSE_AXES)
     return pd.concat([rows[hull].reset_index(drop=True), out], axis=1)
 
 

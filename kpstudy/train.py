@@ -53,6 +53,7 @@ from tqdm import tqdm
 from kpstudy.data import KeypointSet, load_keypoint_set
 from kpstudy.io import write_bytes_atomic
 from kpstudy.models import BACKBONES, argmax_keypoints, build_backbone, dsnt_keypoints
+from kpstudy.preprocess import to_model_input
 
 FORMAT = "kpstudy-checkpoint/1"
 #: Learning-rate schedules of :class:`TrainConfig`.
@@ -215,7 +216,7 @@ def predict(backbone: nn.Module, images: np.ndarray, batch_size: int = 64):
     arg, dsnt = [], []
     with torch.no_grad():
         for i in range(0, len(images), batch_size):
-            h = backbone(_batch(images[i : i + batch_size]).to(device)).float()
+            h = backbone(to_model_input(images[i : i + batch_size]).to(device)).float()
             arg.append(argmax_keypoints(h).cpu().numpy())
             dsnt.append(dsnt_keypoints(h).cpu().numpy())
     return np.concatenate(arg).astype(float), np.concatenate(dsnt).astype(float)
@@ -307,7 +308,7 @@ def train(
         )
         for step in bar:
             idx = order[step * config.batch_size : (step + 1) * config.batch_size]
-            x = augment(_batch(train_set.images[idx.numpy()]).to(device))
+            x = augment(to_model_input(train_set.images[idx.numpy()]).to(device))
             x = x.contiguous(memory_format=torch.channels_last)
             idx = idx.to(device)
             loss = heatmap_loss(
@@ -506,11 +507,6 @@ def _save(path: Path, state: dict) -> None:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     write_bytes_atomic(path, buffer.getvalue())
-
-
-def _batch(images: np.ndarray) -> torch.Tensor:
-    """Preprocessed ``(B, s, s, 3)`` [0, 255] → normalised ``(B, 3, s, s)`` float32."""
-    return torch.from_numpy(np.ascontiguousarray(images, np.float32)).permute(0, 3, 1, 2) / 255.0
 
 
 def _backward(loss, bound, weight: float, params: list) -> None:

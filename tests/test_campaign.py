@@ -20,7 +20,7 @@ from kpstudy.campaign import (
 )
 from kpstudy.certify import SeedImage, build_instance, certify
 from kpstudy.data import load_keypoint_set
-from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.geometry import EPS_R, EPS_T
 from kpstudy.pose_bound import argmax_outside
 from kpstudy.preprocess import scale_factors
 from kpstudy.sensitivity import pose_sensitivity

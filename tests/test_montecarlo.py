@@ -2,10 +2,8 @@ import numpy as np
 import pytest
 
 from kpstudy.allocation import allocate_tolerances
-from kpstudy.geometry import euler_from_matrix, project, wrap_degrees
+from kpstudy.geometry import EPS_R, EPS_T, euler_from_matrix, project, wrap_degrees
 from kpstudy.montecarlo import (
-    EPS_R,
-    EPS_T,
     SOUNDNESS_TOL_PX,
     _rng,
     probabilistic_completeness,

@@ -10,8 +10,8 @@ import torch
 
 from kpstudy import montecarlo, pose_bound
 from kpstudy.evaluate import pose_errors
-from kpstudy.geometry import project_batch
-from kpstudy.montecarlo import EPS_R, EPS_T, probabilistic_soundness, soundness_completeness_table
+from kpstudy.geometry import EPS_R, EPS_T, project_batch
+from kpstudy.montecarlo import probabilistic_soundness, soundness_completeness_table
 from kpstudy.pnp import PnPResult, solve_pnp, solve_pnp_batch
 from tests.conftest import views
 

@@ -10,10 +10,10 @@ from data_gen.perturb import hull_vertices
 from kpstudy import pose_bound as pose_bound_module
 from kpstudy.allocation import allocate_tolerances
 from kpstudy.certify import certify, target_pose_errors
-from kpstudy.montecarlo import EPS_R, EPS_T
+from kpstudy.geometry import EPS_R, EPS_T
 from kpstudy.pnp import solve_pnp
 from kpstudy.pose_bound import linearised_bound
-from kpstudy.preprocess import normalise, resize_to_input
+from kpstudy.preprocess import to_model_input
 from kpstudy.train import load_checkpoint
 from kpstudy.verify import ConvexHull
 from tests.test_campaign import _seed, study  # noqa: F401  (the module fixture)
@@ -145,8 +145,7 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     assert record["pb_nodes"] == 0 and record["pb_stopped"] == "witness"
     lam = torch.tensor(record["pb_counterexample"], dtype=torch.float64)
     s = backbone.input_size
-    images = np.stack([resize_to_input(v, s) for v in vertices])
-    hull = ConvexHull(torch.from_numpy(normalise(images)).permute(0, 3, 1, 2).contiguous())
+    hull = ConvexHull(to_model_input(vertices, size=s))
     R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
     errors = target_pose_errors(backbone, hull.image(lam[None]), seed, R, t)[0]
     assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ
