@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from kpstudy.cli import interrupted
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="data_gen", description=__doc__)
@@ -98,8 +100,7 @@ def main(argv=None) -> int:
     ) as exc:
         parser.exit(2, f"data_gen {args.command}: error: {exc}\n")
     except KeyboardInterrupt:  # Ctrl-C: one line and 128 + SIGINT, no traceback
-        print(f"data_gen {args.command}: interrupted", file=sys.stderr, flush=True)
-        return 130
+        return interrupted(f"data_gen {args.command}")
     return 0
 
 

@@ -9,16 +9,26 @@ import sys
 from pathlib import Path
 
 
+def interrupted(prog: str) -> int:
+    """Answer Ctrl-C (SIGINT): close the open progress bars (each ends its own line, so
+    the message starts on a fresh one), write ``<prog>: interrupted`` on stderr and return
+    130 (128 + SIGINT, as a shell reports it)."""
+    from tqdm import tqdm
+
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+    print(f"{prog}: interrupted", file=sys.stderr, flush=True)
+    return 130
+
+
 def _interruptible(run):
-    """``run`` that answers Ctrl-C (SIGINT) with one line on stderr and status 130 (128 +
-    SIGINT, as a shell reports it) instead of a traceback."""
+    """``run`` that answers Ctrl-C with :func:`interrupted` instead of a traceback."""
 
     def wrapper(argv=None) -> int:
         try:
             return run(argv)
         except KeyboardInterrupt:
-            print("kpstudy: interrupted", file=sys.stderr, flush=True)
-            return 130
+            return interrupted("kpstudy")
 
     wrapper.__doc__, wrapper.__name__ = run.__doc__, run.__name__
     return wrapper

@@ -175,15 +175,21 @@ def test_verify_refuses_a_hull_of_another_dtype_than_the_model():
 
 def interrupt(module: str, *args) -> subprocess.CompletedProcess:
     """Run the CLI, press Ctrl-C (SIGINT to its whole process group, as a terminal does)
-    once it has written to stderr (a progress bar: the work has begun)."""
+    once its progress bar is on stderr (the work has begun; anything written before it,
+    such as a first run's warning, is not the signal)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", module, *map(str, args)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         start_new_session=True,
+        # as in a terminal: a shell's background job (CI started with `&`) ignores SIGINT,
+        # and Python then installs no KeyboardInterrupt handler
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
-        first = proc.stderr.read(1)
+        first = b""
+        while b"%|" not in first and proc.poll() is None:
+            first += proc.stderr.read(1)
         os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=120)
     finally:
