@@ -34,7 +34,8 @@ Verdict, the first rule that applies deciding (``pb_rule``):
 
 * ``'witness'``: a witness image's argmax pose lies outside Ξ → ``violated``;
 * ``'enumeration'`` (the product of the region sizes is ≤ :data:`MAX_COMBINATIONS`):
-  ``holds`` when every combination satisfies ``κ · error ≤ ε`` on every axis, else
+  ``holds`` when every combination's pose lies in Ξ (``error ≤ ε`` on every axis: the
+  decision is exact, so κ, the linearisation's margin, does not scale it), else
   ``unknown`` (a combination outside Ξ that no witness reaches: the regions are
   per-keypoint supersets, so it may not be a real image's). The linearised bound never
   overrules it. A combination that a witness image reaches is decided by ``'witness'``
@@ -237,8 +238,9 @@ def pose_bound(
     eps : ndarray, shape (6,)
         Ξ's half-widths, degrees then metres.
     kappa : float
-        ``holds`` needs ``κ · error ≤ ε`` on every axis, for the enumerated PnP error
-        (at most :data:`MAX_COMBINATIONS` combinations) or else the linearised bound.
+        The linearisation's safety margin: where the regions have more than
+        :data:`MAX_COMBINATIONS` combinations, ``holds`` needs ``κ · bound ≤ ε`` on every
+        axis. The enumerated error is exact and needs ``error ≤ ε`` whatever κ.
     stride : int
         Odd cell side in heatmap pixels; 1 certifies the argmax pixel itself.
     timeout : float
@@ -329,12 +331,12 @@ def pose_bound(
         begin = time.perf_counter()
         exact, farthest, seconds = _enumerated(seed, positions, R, t, eps)
         cached += seconds - (time.perf_counter() - begin)
-        inside = inside_tolerance(kappa * exact, eps)
+        inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
         status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
     else:
         inside = inside_tolerance(kappa * bound, eps)
         status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
-    if status == "unknown" and exact is not None and not inside_tolerance(exact, eps):
+    if status == "unknown" and rule == "enumeration":
         # Can an image reach a combination outside Ξ?
         # Over more combinations the regions are the bounds' looseness: attacks on them
         # found nothing on the quick T-local hulls and took ~90 s each (docs/findings.md).

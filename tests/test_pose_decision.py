@@ -174,9 +174,16 @@ def test_enumeration_proves_what_the_linearised_bound_leaves_open(scene, monkeyp
     assert record["pb_status"] == "holds" and record["pb_rule"] == "enumeration"
     assert record["pb_combinations"] == 8 and record["pb_counterexample"] is None
     np.testing.assert_allclose(record["pb_exact"], exact, rtol=1e-5, atol=1e-7)
-    # κ scales the enumerated error as it scales the bound.
+    # κ is the linearisation's margin: the exact decision is the same whatever κ, ...
     strict = _decide(scene, M, eps, kappa=2.0)
-    assert strict["pb_status"] == "unknown" and strict["pb_rule"] == "enumeration"
+    assert strict["pb_status"] == "holds" and strict["pb_rule"] == "enumeration"
+    # ... and it holds up to Ξ's edge, not beyond: ε just below the exact error is open.
+    edge = _decide(scene, M, exact + 1e-6)
+    assert edge["pb_status"] == "holds"
+    axis = int(np.argmax(exact))
+    below = exact + 1e-6
+    below[axis] = exact[axis] * (1 - 1e-3)
+    assert _decide(scene, M, below)["pb_status"] == "unknown"
 
 
 def _far_tolerance(scene):
