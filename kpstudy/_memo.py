@@ -1,5 +1,5 @@
-"""Small content-keyed caches of one process: a campaign's instances of one seed image or
-one hull ask for the same sensitivities, allocations, argmax poses and enumerations."""
+"""Small content-keyed caches of one process: a campaign's hulls of one seed image ask for
+the same pose sensitivity and allocations (:mod:`kpstudy.certify`)."""
 
 from __future__ import annotations
 

@@ -457,8 +457,9 @@ def run_campaign(
                     for instance, record in zip(futures[future], future.result()):
                         finish(instance, record)
         elif workers == 1:
-            for instance in missing:
-                finish(instance, _attempt(instance, settings))
+            for group in _by_hull(missing):
+                for instance, record in zip(group, _attempt_hull(group, settings)):
+                    finish(instance, record)
         else:
             threads = max(1, (os.cpu_count() or 1) // int(workers))
             with _sigterm_exits():
@@ -617,24 +618,19 @@ def run_study(
     return pd.concat(frames, ignore_index=True)
 
 
-def _attempt(instance: Instance, settings: Settings) -> dict:
-    """:func:`run_instance`, an exception turned into an ``'error'`` record (the
-    campaign goes on)."""
+def _attempt_hull(instances: list[Instance], settings: Settings) -> list[dict]:
+    """:func:`run_hull`, an exception turned into an ``'error'`` record for each of the
+    hull's instances (the campaign goes on)."""
     start = time.perf_counter()
     try:
-        return run_instance(instance, settings)
-    except Exception as exc:  # noqa: BLE001 - any failure of one instance is its result
-        return {
+        return run_hull(instances, settings)
+    except Exception as exc:  # noqa: BLE001 - any failure of one hull is its result
+        error = {
             "status": "error",
             "error": f"{type(exc).__name__}: {exc}",
             "total_time": time.perf_counter() - start,
         }
-
-
-def _attempt_hull(instances: list[Instance], settings: Settings) -> list[dict]:
-    """:func:`_attempt` on the instances of one hull in turn, in one process, so that the
-    pose-bound method's region search (cached per process) is made once per hull."""
-    return [_attempt(instance, settings) for instance in instances]
+        return [dict(error) for _ in instances]
 
 
 def _by_hull(instances: list[Instance]) -> list[list[Instance]]:
@@ -662,19 +658,23 @@ def instance_vertices(instance: Instance, data_dir, hull_seed: int = 0):
     )
 
 
-def run_instance(instance: Instance, settings: Settings) -> dict:
-    """Certify one instance (in whichever process runs it)."""
+def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
+    """Certify the instances of one hull (one group of :func:`_by_hull`: its α, κ cells)
+    in this process, one record each: what depends on the hull alone, such as the
+    pose-bound method's region search, is made once (:func:`kpstudy.certify.certify_cells`)."""
     from data_gen.perturb import load_perturbations
-    from kpstudy.certify import certify
+    from kpstudy.certify import certify_cells
 
+    first = instances[0]
+    if len(_by_hull(instances)) != 1:
+        raise ValueError(f"instances: expected the instances of one hull, got {instances!r}")
     backbone, seed_of = _context(settings.checkpoint, settings.data_dir)
-    vertices = instance_vertices(instance, settings.data_dir, settings.hull_seed)
-    record = certify(
+    vertices = instance_vertices(first, settings.data_dir, settings.hull_seed)
+    records = certify_cells(
         backbone,
         vertices,
-        seed_of(instance.image_id),
-        alpha=instance.alpha,
-        kappa=instance.kappa,
+        seed_of(first.image_id),
+        [(i.alpha, i.kappa) for i in instances],
         method=settings.method,
         timeout=settings.timeout,
         max_nodes=settings.nodes,
@@ -687,15 +687,16 @@ def run_instance(instance: Instance, settings: Settings) -> dict:
         tolerance_units=settings.tolerance_units,
     )
     clipped = 0.0
-    if instance.kind in GLOBAL_KINDS:
-        rows = load_perturbations(settings.data_dir, instance.kind)["images"]
+    if first.kind in GLOBAL_KINDS:
+        rows = load_perturbations(settings.data_dir, first.kind)["images"]
         clipped = sum(
             r["clipped_fraction"]
             for r in rows
-            if r["image_id"] == instance.image_id and np.isclose(r["level"], instance.level)
+            if r["image_id"] == first.image_id and np.isclose(r["level"], first.level)
         )
-    record["clipped_fraction"] = float(clipped)
-    return record
+    for record in records:
+        record["clipped_fraction"] = float(clipped)
+    return records
 
 
 @functools.lru_cache(maxsize=2)

@@ -40,7 +40,7 @@ from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import KeypointProxy, build_proxy
 from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
-from kpstudy.pose_bound import argmax_outside, pose_bound
+from kpstudy.pose_bound import HullPoseBound, argmax_outside
 from kpstudy.preprocess import (
     scale_factors,
     to_image_pixels,
@@ -51,7 +51,14 @@ from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.spec import ArgmaxSpec
 
-__all__ = ["SeedImage", "VerificationInstance", "build_instance", "certify", "target_pose_errors"]
+__all__ = [
+    "SeedImage",
+    "VerificationInstance",
+    "build_instance",
+    "certify",
+    "certify_cells",
+    "target_pose_errors",
+]
 
 
 @dataclass(frozen=True)
@@ -261,13 +268,19 @@ def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
     return remember(_ALLOCATIONS, key, make, 64)
 
 
-def certify(
+def certify(backbone: nn.Module, vertices, seed: SeedImage, *, alpha=1.0, kappa=1.0, **options):
+    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell:
+    one instance, :func:`certify_cells` with the one cell ``(alpha, kappa)`` and its
+    other keywords ``options``; its record."""
+    return certify_cells(backbone, vertices, seed, [(alpha, kappa)], **options)[0]
+
+
+def certify_cells(
     backbone: nn.Module,
     vertices,
     seed: SeedImage,
+    cells,
     *,
-    alpha: float = 1.0,
-    kappa: float = 1.0,
     w1: float = 1.0,
     w2: float = 5.0,
     method: str = "auto",
@@ -282,12 +295,19 @@ def certify(
     pose_bound_start_depth: int = 0,
     tolerance_units: str = "heatmap",
 ) -> dict:
-    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell.
+    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell,
+    for each cell ``(α, κ)`` of the study's grid on this hull.
+
+    The cells share the hull, so what depends on the hull alone is made once: the
+    pose-bound method's region search, enumeration and attacks (a
+    :class:`kpstudy.pose_bound.HullPoseBound`).
 
     Parameters
     ----------
-    backbone, vertices, seed, alpha, kappa, w1, w2, tolerance_units :
-        The instance, as :func:`build_instance` takes them.
+    backbone, vertices, seed, w1, w2, tolerance_units :
+        The instances, as :func:`build_instance` takes them.
+    cells : sequence of (float, float)
+        ``(alpha, kappa)`` of each instance (:func:`build_instance`'s).
     method, timeout, max_nodes :
         Passed to :func:`kpstudy.verify.verify` (seconds; a node budget, ``None``: the
         seconds alone).
@@ -295,7 +315,7 @@ def certify(
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
     pose_bound_timeout : float, optional
-        Seconds for the second method, :func:`kpstudy.pose_bound.pose_bound` (reachable
+        Seconds for the second method, :class:`kpstudy.pose_bound.HullPoseBound` (reachable
         keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
     pose_bound_stride : int
         Its cell side in heatmap pixels (1: the argmax pixel itself).
@@ -303,13 +323,15 @@ def certify(
         Its bound method (``'forward'`` or ``'zonotope'``).
     pose_bound_nodes, pose_bound_start_depth : int
         Its node budget (``None``: the seconds alone) and the hull's splits before the
-        first bounds (:func:`kpstudy.pose_bound.pose_bound`'s ``max_nodes``, ``start_depth``).
+        first bounds (:class:`kpstudy.pose_bound.HullPoseBound`'s ``max_nodes``,
+        ``start_depth``).
 
     Returns
     -------
-    dict
-        ``image_id``, ``n`` (perturbed vertices), ``status`` (``holds`` / ``violated`` /
-        ``unknown``), ``time`` (verification, s), ``total_time`` (s), ``nodes``, ``stopped``
+    list of dict
+        One record per cell, in order: ``image_id``, ``n`` (perturbed vertices),
+        ``status`` (``holds`` / ``violated`` / ``unknown``), ``time`` (verification, s),
+        ``total_time`` (s), ``nodes``, ``stopped``
         (what ended the search early: ``'nodes'`` (``max_nodes`` spent), ``'time'``
         (``timeout`` fired: the verdict depends on the machine), ``'stop'`` (a
         counterexample) or None),
@@ -323,32 +345,77 @@ def certify(
         ``argmax_outside`` (fraction of the same images whose argmax → PnP pose leaves
         Ξ: what a ``holds`` under the ``'paper'`` reading lets through; None unless
         ``holds``), ``empirical_samples``, ``tolerance_units``; with
-        ``pose_bound_timeout``, the ``pb_*`` entries of :func:`kpstudy.pose_bound.pose_bound`.
+        ``pose_bound_timeout``, the ``pb_*`` entries of
+        :meth:`kpstudy.pose_bound.HullPoseBound.decide`.
     """
-    start = time.perf_counter()
-    alpha = float(_checks.positive(alpha, "alpha"))
-    kappa = float(_checks.positive(kappa, "kappa"))
     if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
         raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
-    instance = build_instance(
-        backbone,
-        vertices,
-        seed,
-        alpha=alpha,
-        kappa=kappa,
-        w1=w1,
-        w2=w2,
-        tolerance_units=tolerance_units,
-    )
-    hull, allocation, xi = instance.hull, instance.allocation, instance.xi
-    R, t = instance.R, instance.t
-    P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), np.asarray(seed.K, float)
-    x = instance.inputs
+    cells = list(cells)
+    if not cells or any(np.shape(c) != (2,) for c in cells):
+        raise ValueError(f"cells: expected one or more (alpha, kappa) pairs, got {cells!r}")
+    cells = [
+        (float(_checks.positive(a, "alpha")), float(_checks.positive(k, "kappa"))) for a, k in cells
+    ]
+    shared = None  # the pose-bound method on this hull, made with the first cell
+    records = []
+    for alpha, kappa in cells:
+        start = time.perf_counter()
+        instance = build_instance(
+            backbone,
+            vertices,
+            seed,
+            alpha=alpha,
+            kappa=kappa,
+            w1=w1,
+            w2=w2,
+            tolerance_units=tolerance_units,
+        )
+        record = _verify_instance(
+            backbone, instance, seed, method, timeout, max_nodes, check_samples, sample_seed
+        )
+        record["tolerance_units"] = tolerance_units
+        if pose_bound_timeout is not None:
+            if shared is None:
+                P, V = seed.points_3d, np.asarray(seed.keypoints, float)
+                M_image = _sensitivity(
+                    P, V, np.asarray(seed.K, float), instance.R, instance.t, None
+                )
+                shared = HullPoseBound(
+                    backbone,
+                    instance.hull,
+                    seed,
+                    instance.R,
+                    instance.t,
+                    M_image,
+                    stride=pose_bound_stride,
+                    timeout=pose_bound_timeout,
+                    method=pose_bound_method,
+                    max_nodes=pose_bound_nodes,
+                    start_depth=pose_bound_start_depth,
+                    sample_seed=sample_seed,
+                )
+            record.update(shared.decide(instance.xi, kappa))
+        record["total_time"] = time.perf_counter() - start
+        records.append(record)
+    return records
 
+
+def _verify_instance(
+    backbone, instance, seed, method, timeout, max_nodes, check_samples, sample_seed
+) -> dict:
+    """The allocation method's record of one instance (:func:`certify_cells`'s, without
+    ``tolerance_units``, the ``pb_*`` entries and ``total_time``)."""
+    hull, allocation, xi, R, t = (
+        instance.hull,
+        instance.allocation,
+        instance.xi,
+        instance.R,
+        instance.t,
+    )
     result = verify(
         instance.proxy, hull, instance.spec, method=method, timeout=timeout, max_nodes=max_nodes
     )
-    seed_error = target_pose_errors(backbone, x[:1], seed, R, t)[0]
+    seed_error = target_pose_errors(backbone, instance.inputs[:1], seed, R, t)[0]
     record = {
         "image_id": seed.image_id,
         "n": hull.n,
@@ -369,7 +436,6 @@ def certify(
         "empirical_inside": None,
         "argmax_outside": None,
         "empirical_samples": 0,
-        "tolerance_units": tolerance_units,
     }
     if result.status == "holds" and check_samples:
         images = hull.image(hull.sample(int(check_samples), sample_seed))
@@ -378,25 +444,4 @@ def certify(
         outside = argmax_outside(backbone, images, seed, R, t, xi)
         record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)
-    if pose_bound_timeout is not None:
-        M_image = _sensitivity(P, V, K, R, t, None)
-        record.update(
-            pose_bound(
-                backbone,
-                hull,
-                seed,
-                R,
-                t,
-                M_image,
-                xi,
-                kappa=kappa,
-                stride=pose_bound_stride,
-                timeout=pose_bound_timeout,
-                method=pose_bound_method,
-                max_nodes=pose_bound_nodes,
-                start_depth=pose_bound_start_depth,
-                sample_seed=sample_seed,
-            )
-        )
-    record["total_time"] = time.perf_counter() - start
     return record

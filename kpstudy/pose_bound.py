@@ -58,7 +58,7 @@ import time
 import numpy as np
 import torch
 
-from kpstudy._memo import digest, remember
+from kpstudy._memo import digest
 from kpstudy.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.proxy import build_proxy
@@ -70,6 +70,7 @@ from kpstudy.verify.reachable import check_search
 
 __all__ = [
     "ENUMERATION_CHUNK",
+    "HullPoseBound",
     "MAX_COMBINATIONS",
     "argmax_outside",
     "enumerated_pose_error",
@@ -202,25 +203,32 @@ def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple[np.ndarray, np.n
     return worst, np.array(np.unravel_index(where, sizes))
 
 
-def pose_bound(
-    backbone,
-    hull,
-    seed,
-    R,
-    t,
-    M,
-    eps,
-    *,
-    kappa: float = 1.0,
-    stride: int = 1,
-    timeout: float = 10.0,
-    method: str = "forward",
-    max_nodes: int | None = None,
-    start_depth: int = 0,
-    random_corners: int = 64,
-    sample_seed: int = 0,
-) -> dict:
-    """Certify the argmax → PnP pose error of every image of ``hull`` (one seed image).
+def pose_bound(backbone, hull, seed, R, t, M, eps, *, kappa: float = 1.0, **search) -> dict:
+    """Certify the argmax → PnP pose error of every image of ``hull`` (one seed image):
+    ``HullPoseBound(backbone, hull, seed, R, t, M, **search).decide(eps, kappa)``.
+
+    Parameters
+    ----------
+    backbone, hull, seed, R, t, M, **search :
+        As :class:`HullPoseBound` takes them.
+    eps, kappa :
+        As :meth:`HullPoseBound.decide` takes them.
+
+    Returns
+    -------
+    dict
+        :meth:`HullPoseBound.decide`'s record.
+    """
+    return HullPoseBound(backbone, hull, seed, R, t, M, **search).decide(eps, kappa)
+
+
+class HullPoseBound:
+    """The pose-bound method on one hull, for any number of tolerance boxes.
+
+    What depends on the hull only is made once, when a cell first needs it, and shared by
+    every :meth:`decide` (a campaign's α, κ cells of one hull): the argmax poses of the
+    seed, the vertices and random images, the region search, the enumeration of region
+    pixels, the float64 model and the targeted attacks.
 
     Parameters
     ----------
@@ -235,18 +243,10 @@ def pose_bound(
     M : ndarray, shape (6, 2K)
         ``dξ/dv`` at that pose, degrees and metres per *image* pixel (columns
         ``u1, v1, u2, …``); only the linearised bound uses it.
-    eps : ndarray, shape (6,)
-        Ξ's half-widths, degrees then metres.
-    kappa : float
-        The linearisation's safety margin: where the regions have more than
-        :data:`MAX_COMBINATIONS` combinations, ``holds`` needs ``κ · bound ≤ ε`` on every
-        axis. The enumerated error is exact and needs ``error ≤ ε`` whatever κ.
     stride : int
         Odd cell side in heatmap pixels; 1 certifies the argmax pixel itself.
     timeout : float
-        Seconds for :func:`kpstudy.verify.reachable_argmax`. Its regions depend on the hull
-        only, so the instances of one hull (their α, κ) share one search, and one
-        enumeration; ``pb_time`` counts both in full for each.
+        Seconds for :func:`kpstudy.verify.reachable_argmax`.
     method : {'forward', 'zonotope', 'ibp'}
         Its bounds: ``'zonotope'`` gives far smaller regions on a trained CNN, at tens
         of seconds per node on 2 CPU cores (``'forward'``: a fraction of a second).
@@ -261,117 +261,234 @@ def pose_bound(
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
     sample_seed : int
-
-    Returns
-    -------
-    dict
-        ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``, the rule
-        that decided it (``'witness'``, ``'enumeration'`` or ``'linearised'``: module
-        docstring); ``pb_seed_inside`` (the argmax → PnP pose of the seed image lies in
-        Ξ: the pipeline this method certifies is right at the seed); ``pb_bound`` (6:
-        the linearised bound ``max |M δ|``, degrees then metres); ``pb_combinations``
-        (the product of the region sizes: an int, a float above 2⁵³); ``pb_exact`` (6:
-        the largest PnP pose error over every combination, degrees then metres, ``inf``
-        if some pose is not valid) when they were enumerated, else None;
-        ``pb_nonlinear`` (6: the largest PnP pose error found at region corners; ``inf``
-        if PnP flags a corner's pose as not valid); ``pb_time`` (s, the search, the
-        enumeration and the attack each counted in full); ``pb_nodes``; ``pb_stopped``
-        (what ended the search early: ``'nodes'``, ``'time'``, ``'witness'`` when the
-        seed, a vertex or a random image of the hull was already a counterexample and no
-        node was bounded, or None); ``pb_complete`` (possible = reached); ``pb_pixels``
-        (possible pixels per keypoint); ``pb_counterexample`` (λ of the witness image,
-        or None); ``pb_stride``; ``pb_method``.
     """
-    start = time.perf_counter()
-    if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
-        raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
-    check_search(method, timeout, max_nodes, start_depth)
-    hm = backbone.heatmap_size
-    factors = scale_factors(seed.image_size, hm)
-    V = np.asarray(seed.keypoints, dtype=np.float64)
-    centers = np.clip(np.rint(to_input_pixels(V, factors)), 0, hm - 1).astype(np.int64)
-    key = (id(backbone), digest(hull.vertices))
-    seed_lam = torch.zeros(1, hull.n, dtype=torch.float64)
-    seed_errors = _argmax_errors(backbone, hull, seed, R, t, seed_lam)
-    seed_inside = bool(inside_tolerance(seed_errors, eps).all())
-    # Witnesses first: the seed, the hull's corners and random images. One whose argmax
-    # pose leaves Ξ decides 'violated', and the search is skipped (its regions: everything).
-    early = _outside(backbone, hull, seed, R, t, eps, _first_points(hull, sample_seed))
-    skipped = early is not None
-    search = dict(method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth)
-    key += (centers.tobytes(), int(stride), repr(sorted(search.items())))
-    before = time.perf_counter() - start
-    if skipped:
-        regions, pixels, search_time = _everywhere(hm), [_grid(hm)] * len(V), 0.0
-    else:
-        regions, pixels, search_time = _regions(key, backbone, hull, centers, stride, search)
-    start = time.perf_counter()  # the search is counted once, cached or not
-    positions = [to_image_pixels(p, factors) for p in pixels]  # (n_k, 2) image pixels
-    deviations = [p - v for p, v in zip(positions, V)]
-    bound, extremes = linearised_bound(M, deviations)
-    combinations = math.prod(len(p) for p in positions)
 
-    # Nonlinear check: PnP at the extreme and at random combinations of region pixels.
-    rng = np.random.default_rng(sample_seed)
-    random = np.stack([rng.integers(0, len(d), random_corners) for d in deviations], 1)
-    picks = np.concatenate([extremes, random.reshape(-1, len(deviations))])
-    V_corner = np.stack([V + np.stack([d[i] for d, i in zip(deviations, row)]) for row in picks])
-    nonlinear = _pose_errors(seed, V_corner, R, t).max(0)
+    def __init__(
+        self,
+        backbone,
+        hull,
+        seed,
+        R,
+        t,
+        M,
+        *,
+        stride: int = 1,
+        timeout: float = 10.0,
+        method: str = "forward",
+        max_nodes: int | None = None,
+        start_depth: int = 0,
+        random_corners: int = 64,
+        sample_seed: int = 0,
+    ) -> None:
+        if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
+            raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
+        check_search(method, timeout, max_nodes, start_depth)
+        self.backbone, self.hull, self.seed, self.R, self.t = backbone, hull, seed, R, t
+        self.M, self.stride, self.method = M, int(stride), method
+        self.random_corners, self.sample_seed = random_corners, sample_seed
+        self.search = dict(
+            method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth
+        )
+        hm = backbone.heatmap_size
+        self.factors = scale_factors(seed.image_size, hm)
+        self.V = np.asarray(seed.keypoints, dtype=np.float64)
+        centers = np.rint(to_input_pixels(self.V, self.factors))
+        self.centers = np.clip(centers, 0, hm - 1).astype(np.int64)
+        self._errors: dict = {}  # λ digest → argmax pose errors (6,)
+        self._made: dict = {}  # shared step → (value, seconds)
+        self._model64 = None
 
-    # Witnesses are real images: their argmax pose decides 'violated'.
-    if early is None:
-        points = [lam for w in regions.witnesses for lam in w.values()]
-        early = _outside(backbone, hull, seed, R, t, eps, points) if points else None
-    exact, cached = None, 0.0  # seconds of cached steps, as if they ran here
-    if early is not None:
-        status, rule, counterexample = "violated", "witness", early
-    elif combinations <= MAX_COMBINATIONS:
-        # Exact over the product of the regions; a combination outside Ξ keeps it open,
-        # whatever the linearised bound says.
+    def decide(self, eps, kappa: float = 1.0) -> dict:
+        """The verdict and record for Ξ of half-widths ``eps``.
+
+        Parameters
+        ----------
+        eps : ndarray, shape (6,)
+            Ξ's half-widths, degrees then metres.
+        kappa : float
+            The linearisation's safety margin: where the regions have more than
+            :data:`MAX_COMBINATIONS` combinations, ``holds`` needs ``κ · bound ≤ ε`` on
+            every axis. The enumerated error is exact and needs ``error ≤ ε`` whatever κ.
+
+        Returns
+        -------
+        dict
+            ``pb_status`` (``'holds'``, ``'violated'`` or ``'unknown'``) and ``pb_rule``,
+            the rule that decided it (``'witness'``, ``'enumeration'`` or
+            ``'linearised'``: module docstring); ``pb_seed_inside`` (the argmax → PnP pose
+            of the seed image lies in Ξ: the pipeline this method certifies is right at
+            the seed); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
+            metres); ``pb_combinations`` (the product of the region sizes: an int, a float
+            above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over every
+            combination, degrees then metres, ``inf`` if some pose is not valid) when they
+            were enumerated, else None; ``pb_nonlinear`` (6: the largest PnP pose error
+            found at region corners; ``inf`` if PnP flags a corner's pose as not valid);
+            ``pb_time`` (s; the shared steps this cell used, the search, the enumeration
+            and the attack, each counted in full, as if it ran alone); ``pb_nodes``;
+            ``pb_stopped`` (what ended the search early: ``'nodes'``, ``'time'``,
+            ``'witness'`` when the seed, a vertex or a random image of the hull was
+            already a counterexample and no node was bounded, or None); ``pb_complete``
+            (possible = reached); ``pb_pixels`` (possible pixels per keypoint);
+            ``pb_counterexample`` (λ of the witness image, or None); ``pb_stride``;
+            ``pb_method``.
+        """
+        start, self._spent = time.perf_counter(), 0.0
+        eps = np.asarray(eps, dtype=np.float64)
+        seed, R, t = self.seed, self.R, self.t
+        seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
+        seed_inside = bool(inside_tolerance(self._argmax_errors(seed_lam)[0], eps).all())
+        # Witnesses first: the seed, the hull's corners and random images. One whose argmax
+        # pose leaves Ξ decides 'violated', and the search is skipped (its regions: all).
+        early = self._outside(eps, _first_points(self.hull, self.sample_seed))
+        skipped = early is not None
+        if skipped:
+            hm = self.backbone.heatmap_size
+            regions, pixels = _everywhere(hm), [_grid(hm)] * len(self.V)
+        else:
+            regions, pixels = self._shared(
+                "search",
+                lambda: _search_regions(
+                    self.backbone, self.hull, self.centers, self.stride, self.search
+                ),
+            )
+        positions = [to_image_pixels(p, self.factors) for p in pixels]  # (n_k, 2) image px
+        deviations = [p - v for p, v in zip(positions, self.V)]
+        bound, extremes = linearised_bound(self.M, deviations)
+        combinations = math.prod(len(p) for p in positions)
+
+        # Nonlinear check: PnP at the extreme and at random combinations of region pixels.
+        rng = np.random.default_rng(self.sample_seed)
+        random = np.stack([rng.integers(0, len(d), self.random_corners) for d in deviations], 1)
+        picks = np.concatenate([extremes, random.reshape(-1, len(deviations))])
+        V_corner = np.stack(
+            [self.V + np.stack([d[i] for d, i in zip(deviations, row)]) for row in picks]
+        )
+        nonlinear = _pose_errors(seed, V_corner, R, t).max(0)
+
+        # Witnesses are real images: their argmax pose decides 'violated'.
+        if early is None:
+            points = [lam for w in regions.witnesses for lam in w.values()]
+            early = self._outside(eps, points) if points else None
+        exact = None
+        if early is not None:
+            status, rule, counterexample = "violated", "witness", early
+        elif combinations <= MAX_COMBINATIONS:
+            # Exact over the product of the regions; a combination outside Ξ keeps it
+            # open, whatever the linearised bound says.
+            exact, farthest = self._shared(
+                ("enumeration", eps.tobytes()),
+                lambda: _enumerate(seed, positions, R, t, eps),
+            )
+            inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
+            status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
+        else:
+            inside = inside_tolerance(kappa * bound, eps)
+            status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
+        if status == "unknown" and rule == "enumeration":
+            found = self._attack(eps, regions, pixels, farthest)
+            if found is not None:
+                status, rule, counterexample = "violated", "witness", found
+        return {
+            "pb_status": status,
+            "pb_rule": rule,
+            "pb_seed_inside": seed_inside,
+            "pb_bound": bound.tolist(),
+            "pb_combinations": combinations if combinations <= 2**53 else float(combinations),
+            "pb_exact": None if exact is None else exact.tolist(),
+            "pb_nonlinear": nonlinear.tolist(),
+            "pb_time": self._spent + time.perf_counter() - start,
+            "pb_nodes": regions.nodes,
+            "pb_stopped": "witness" if skipped else regions.stats["stopped"],
+            "pb_complete": regions.complete,
+            "pb_pixels": [len(p) for p in pixels],
+            "pb_counterexample": counterexample,
+            "pb_stride": self.stride,
+            "pb_method": self.method,
+        }
+
+    def _shared(self, key, make):
+        """``make()``'s value, made once per hull; ``decide``'s ``pb_time`` counts its
+        seconds in full whether it was made now or before."""
         begin = time.perf_counter()
-        exact, farthest, seconds = _enumerated(seed, positions, R, t, eps)
-        cached += seconds - (time.perf_counter() - begin)
-        inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
-        status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
-    else:
-        inside = inside_tolerance(kappa * bound, eps)
-        status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
-    if status == "unknown" and rule == "enumeration":
-        # Can an image reach a combination outside Ξ?
-        # Over more combinations the regions are the bounds' looseness: attacks on them
-        # found nothing on the quick T-local hulls and took ~90 s each (docs/findings.md).
+        if key not in self._made:
+            self._made[key] = (make(), time.perf_counter() - begin)
+        value, seconds = self._made[key]
+        self._spent += seconds - (time.perf_counter() - begin)
+        return value
+
+    def _attack(self, eps, regions, pixels, farthest) -> list | None:
+        """Can an image reach a combination outside Ξ? :func:`targeted_witness` on the
+        farthest combination and the farthest one-keypoint moves; λ of an image found
+        whose pose, re-checked, leaves Ξ, else None.
+
+        Over more combinations than are enumerated the regions are the bounds' looseness:
+        attacks on them found nothing on the quick T-local hulls and took ~90 s each
+        (docs/findings.md), so only enumerated regions are attacked."""
+        seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
+        base = self._shared("seed argmax", lambda: self._seed_argmax(seed_lam))
         targets = [np.stack([p[i] for p, i in zip(pixels, farthest)])]
-        with torch.no_grad():  # the seed image's argmax pixels (K, 2): the others stay there
-            base = argmax_keypoints(backbone(hull.image(seed_lam)))[0].double().numpy()
-        for k, pixel in single_moves(seed, pixels, base, factors, R, t, eps)[:TARGETED_MOVES]:
+        moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)
+        for k, pixel in moves[:TARGETED_MOVES]:
             target = np.full_like(base, -1.0)
             target[k] = pixel
             targets.append(target)
         seen = [lam for w in regions.witnesses for lam in w.values()]
-        starts = [torch.zeros(hull.n, dtype=torch.float64), *seen[: TARGETED_STARTS - 1]]
-        begin = time.perf_counter()
-        lam, seconds = _targeted(backbone, hull, np.rint(targets).astype(np.int64), starts)
-        cached += seconds - (time.perf_counter() - begin)
-        found = None if lam is None else _outside(backbone, hull, seed, R, t, eps, [lam])
-        if found is not None:
-            status, rule, counterexample = "violated", "witness", found
-    return {
-        "pb_status": status,
-        "pb_rule": rule,
-        "pb_seed_inside": seed_inside,
-        "pb_bound": bound.tolist(),
-        "pb_combinations": combinations if combinations <= 2**53 else float(combinations),
-        "pb_exact": None if exact is None else exact.tolist(),
-        "pb_nonlinear": nonlinear.tolist(),
-        "pb_time": before + search_time + cached + time.perf_counter() - start,
-        "pb_nodes": regions.nodes,
-        "pb_stopped": "witness" if skipped else regions.stats["stopped"],
-        "pb_complete": regions.complete,
-        "pb_pixels": [len(p) for p in pixels],
-        "pb_counterexample": counterexample,
-        "pb_stride": int(stride),
-        "pb_method": method,
-    }
+        starts = [torch.zeros(self.hull.n, dtype=torch.float64), *seen[: TARGETED_STARTS - 1]]
+        targets = np.rint(targets).astype(np.int64)
+        lam = self._shared(
+            ("attack", digest(targets, *starts)),
+            lambda: targeted_witness(self.backbone, self.hull, targets, starts),
+        )
+        return None if lam is None else self._outside(eps, [lam])
+
+    def _seed_argmax(self, seed_lam) -> np.ndarray:
+        """The seed image's argmax pixels ``(K, 2)``, heatmap ``(u, v)``."""
+        with torch.no_grad():
+            heatmaps = self.backbone(self.hull.image(seed_lam))
+        return argmax_keypoints(heatmaps)[0].double().numpy()
+
+    def _argmax_errors(self, lam) -> np.ndarray:
+        """:func:`argmax_pose_errors` of ``hull.image(lam)`` for ``lam (P, n)``, each
+        point's made once."""
+        keys = [digest(row) for row in lam]
+        missing = [i for i, k in enumerate(keys) if k not in self._errors]
+        if missing:
+            images = self.hull.image(lam[missing])
+            errors = argmax_pose_errors(self.backbone, images, self.seed, self.R, self.t)
+            self._errors.update(zip([keys[i] for i in missing], errors))
+        return np.stack([self._errors[k] for k in keys])
+
+    def _outside(self, eps, points) -> list | None:
+        """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies
+        outside Ξ (half-widths ``eps``), else None. A point found in the model's dtype
+        counts only if the float64 model at the exact hull point
+        (``hull.image(λ, float64)``) agrees."""
+        lam = torch.unique(torch.stack(list(points)), dim=0)
+        outside = np.flatnonzero(~inside_tolerance(self._argmax_errors(lam), eps))
+        if not outside.size:
+            return None
+        backbone = self.backbone
+        if next(backbone.parameters(), torch.empty(0)).dtype == torch.float64:
+            return lam[outside[0]].tolist()
+        if self._model64 is None:
+            self._model64 = copy.deepcopy(backbone).double()
+        for rows in np.array_split(outside, -(-len(outside) // 4)):  # the first confirmed
+            images = self.hull.image(lam[rows], dtype=torch.float64)
+            confirmed = argmax_outside(self._model64, images, self.seed, self.R, self.t, eps)
+            if confirmed.size:
+                return lam[rows[confirmed[0]]].tolist()
+        return None
+
+
+def _search_regions(backbone, hull, centers, stride: int, search: dict):
+    """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
+    stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
+    keywords; the :class:`Regions` and each keypoint's pixels ``(n_k, 2)``."""
+    hm = backbone.heatmap_size
+    pooling = keypoint_pooling(centers, np.full_like(centers, (stride - 1) // 2), (hm, hm))
+    proxy = build_proxy(backbone, pooling, centers).eval()
+    regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, **search)
+    return regions, region_pixels(regions, pooling, hm)
 
 
 def _grid(heatmap_size: int) -> np.ndarray:
@@ -393,26 +510,6 @@ def _first_points(hull, sample_seed: int, samples: int = 64) -> list[torch.Tenso
     return [torch.zeros(hull.n, dtype=torch.float64), *corners, *random]
 
 
-def _outside(backbone, hull, seed, R, t, eps, points) -> list | None:
-    """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies outside
-    Ξ (half-widths ``eps``), else None. A point found in the model's dtype counts only if
-    the float64 model at the exact hull point (``hull.image(λ, float64)``) agrees."""
-    lam = torch.unique(torch.stack(list(points)), dim=0)
-    errors = _argmax_errors(backbone, hull, seed, R, t, lam)
-    outside = np.flatnonzero(~inside_tolerance(errors, eps))
-    if not outside.size:
-        return None
-    if next(backbone.parameters(), torch.empty(0)).dtype == torch.float64:
-        return lam[outside[0]].tolist()
-    model64 = copy.deepcopy(backbone).double()
-    for rows in np.array_split(outside, -(-len(outside) // 4)):  # the first confirmed
-        images = hull.image(lam[rows], dtype=torch.float64)
-        confirmed = argmax_outside(model64, images, seed, R, t, eps)
-        if confirmed.size:
-            return lam[rows[confirmed[0]]].tolist()
-    return None
-
-
 def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
     """Indices of ``images (B, 3, s, s)`` (normalised model inputs) whose argmax → PnP
     pose lies outside Ξ (half-widths ``eps``, 6: degrees, metres) around ``(R, t)``."""
@@ -427,70 +524,6 @@ def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:
     with torch.no_grad():
         uv = argmax_keypoints(backbone(images)).double().numpy()
     return _pose_errors(seed, to_image_pixels(uv, factors), R, t)
-
-
-_ERRORS: dict = {}
-
-
-def _argmax_errors(backbone, hull, seed, R, t, lam) -> np.ndarray:
-    """:func:`argmax_pose_errors` of ``hull.image(lam)``; the last few are kept, since the
-    α, κ cells of one hull ask for the same points (an entry holds its backbone)."""
-    key = (id(backbone), digest(lam, hull.vertices, R, t, seed.keypoints, seed.K))
-    make = lambda: (backbone, argmax_pose_errors(backbone, hull.image(lam), seed, R, t))  # noqa: E731
-    return remember(_ERRORS, key, make, 4)[1]
-
-
-_ATTACKS: dict = {}
-
-
-def _targeted(backbone, hull, targets, starts) -> tuple[torch.Tensor | None, float]:
-    """:func:`targeted_witness` and its seconds; the last few are kept, since the α, κ
-    cells of one hull often seek the same moves (an entry holds its backbone)."""
-
-    def make():
-        begin = time.perf_counter()
-        lam = targeted_witness(backbone, hull, targets, starts)
-        return backbone, lam, time.perf_counter() - begin
-
-    key = (id(backbone), digest(targets, hull.vertices, *starts))
-    return remember(_ATTACKS, key, make, 4)[1:]
-
-
-_CACHE: dict = {}
-
-
-def _regions(key, backbone, hull, centers, stride: int, search: dict):
-    """Possible pixels of each keypoint over ``hull`` and the search's seconds; the last
-    few are kept, since the instances of one hull (its α, κ cells) follow each other.
-    An entry holds its backbone, so the ``id`` in its key cannot be reused meanwhile."""
-
-    def make():
-        start = time.perf_counter()
-        hm = backbone.heatmap_size
-        pooling = keypoint_pooling(centers, np.full_like(centers, (stride - 1) // 2), (hm, hm))
-        proxy = build_proxy(backbone, pooling, centers).eval()
-        regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, **search)
-        pixels = region_pixels(regions, pooling, hm)
-        return backbone, regions, pixels, time.perf_counter() - start
-
-    return remember(_CACHE, key, make, 4)[1:]
-
-
-_ENUMERATED: dict = {}
-
-
-def _enumerated(seed, positions, R, t, eps) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`_enumerate` of the keypoint positions ``(n_k, 2)`` (image pixels) and its
-    seconds; like :func:`_regions`, the last few are kept for the other α, κ cells of the
-    same hull (the key is the content of every input)."""
-
-    def make():
-        start = time.perf_counter()
-        return (*_enumerate(seed, positions, R, t, eps), time.perf_counter() - start)
-
-    key = digest(*positions, seed.points_3d, seed.K, R, t, eps)
-    exact, farthest, seconds = remember(_ENUMERATED, key, make, 4)
-    return exact.copy(), farthest.copy(), seconds
 
 
 def targeted_witness(

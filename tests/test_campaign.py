@@ -14,7 +14,7 @@ from kpstudy.campaign import (
     Settings,
     grid,
     run_campaign,
-    run_instance,
+    run_hull,
     run_study,
     store_path,
 )
@@ -268,16 +268,22 @@ def test_dask_and_process_pool_runs_equal_the_local_run(study, tmp_path):
     assert _table(dask) == local
 
 
-def test_run_instance_reports_the_clipped_fraction(study):
+def test_run_hull_gives_each_cell_its_record_and_the_clipped_fraction(study):
     data, checkpoint = study
     seed = _seed(data)
-    settings = Settings(str(checkpoint), str(data), timeout=10, check_samples=0)
-    record = run_instance(Instance("brightness", seed.image_id, 1.0, 1.0, level=2.0), settings)
-    assert 0.0 <= record["clipped_fraction"] < 1.0
-    blocks = run_instance(
-        Instance("blocks", seed.image_id, 1.0, 1.0, m=1, overlapping=False), settings
-    )
-    assert blocks["clipped_fraction"] == 0.0
+    settings = Settings(str(checkpoint), str(data), timeout=10, nodes=2, check_samples=0)
+    cells = [Instance("brightness", seed.image_id, a, k, level=2.0) for a, k in [(1, 1), (5, 2)]]
+    both = run_hull(cells, settings)
+    assert 0.0 <= both[0]["clipped_fraction"] < 1.0
+    for instance, record in zip(cells, both):  # the same as each cell alone
+        (alone,) = run_hull([instance], settings)
+        for key in ("status", "dv", "nodes", "seed_error", "clipped_fraction"):
+            assert record[key] == alone[key]
+    assert both[0]["dv"] != both[1]["dv"]
+    blocks = Instance("blocks", seed.image_id, 1.0, 1.0, m=1, overlapping=False)
+    assert run_hull([blocks], settings)[0]["clipped_fraction"] == 0.0
+    with pytest.raises(ValueError, match="^instances: expected the instances of one hull"):
+        run_hull([cells[0], blocks], settings)
 
 
 def test_store_paths_separate_models_and_settings(study, tmp_path, monkeypatch):

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices
-from kpstudy import pose_bound as pose_bound_module
 from kpstudy.allocation import allocate_tolerances
 from kpstudy.certify import certify, target_pose_errors
 from kpstudy.geometry import EPS_R, EPS_T
@@ -127,8 +126,6 @@ def test_a_node_budget_gives_the_same_regions_whatever_the_time(study):  # noqa:
     budget = dict(check_samples=0, pose_bound_nodes=3, pose_bound_start_depth=2)
     first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=CAP, **budget)
     assert 1 <= first["pb_nodes"] <= 3 and first["pb_stopped"] in ("nodes", None)
-    pose_bound_module._CACHE.clear()
-    pose_bound_module._ENUMERATED.clear()
     again = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=300, **budget)
     for key in ("pb_status", "pb_pixels", "pb_bound", "pb_nodes", "pb_stopped"):
         assert again[key] == first[key]

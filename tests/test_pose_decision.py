@@ -115,12 +115,17 @@ def scene(P, K):
     return seed, R[0], t[0], factors, centers
 
 
-@pytest.fixture(autouse=True)
-def _fresh_caches(monkeypatch):
-    monkeypatch.setattr(pb, "_CACHE", {})
-    monkeypatch.setattr(pb, "_ENUMERATED", {})
-    monkeypatch.setattr(pb, "_ERRORS", {})
-    monkeypatch.setattr(pb, "_ATTACKS", {})
+@pytest.fixture
+def attacks(monkeypatch):
+    """The targets of every :func:`pb.targeted_witness` call, in order."""
+    calls, real = [], pb.targeted_witness
+
+    def counted(backbone, hull, targets, starts, **kw):
+        calls.append(np.asarray(targets))
+        return real(backbone, hull, targets, starts, **kw)
+
+    monkeypatch.setattr(pb, "targeted_witness", counted)
+    return calls
 
 
 def _with_regions(monkeypatch, pixels, witnesses=()):
@@ -129,7 +134,7 @@ def _with_regions(monkeypatch, pixels, witnesses=()):
         witnesses=list(witnesses), nodes=1, complete=True, stats={"stopped": None}
     )
     pixels = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pixels]
-    monkeypatch.setattr(pb, "_regions", lambda *args: (regions, pixels, 0.0))
+    monkeypatch.setattr(pb, "_search_regions", lambda *args: (regions, pixels))
 
 
 def _hull():
@@ -184,6 +189,27 @@ def test_enumeration_proves_what_the_linearised_bound_leaves_open(scene, monkeyp
     below = exact + 1e-6
     below[axis] = exact[axis] * (1 - 1e-3)
     assert _decide(scene, M, below)["pb_status"] == "unknown"
+
+
+def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypatch):
+    seed, R, t, factors, centers = scene
+    pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1))])
+    _with_regions(monkeypatch, pixels)
+    searches, enumerations = [], []
+    search, enumerate_ = pb._search_regions, pb._enumerate
+    monkeypatch.setattr(pb, "_search_regions", lambda *a: searches.append(1) or search(*a))
+    monkeypatch.setattr(pb, "_enumerate", lambda *a: enumerations.append(1) or enumerate_(*a))
+    exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
+    M = np.full((6, 46), 1.0)
+    cells = [(1.5 * exact + 1e-6, 1.0), (1.5 * exact + 1e-6, 2.0), (1.2 * exact + 1e-6, 1.0)]
+    hull = pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, M, random_corners=4)
+    records = [hull.decide(eps, kappa) for eps, kappa in cells]
+    assert len(searches) == 1 and len(enumerations) == 2  # one per distinct Ξ
+    assert [r["pb_status"] for r in records] == ["holds"] * 3
+    for (eps, kappa), record in zip(cells, records):  # as if each cell ran alone
+        alone = _decide(scene, M, eps, kappa)
+        for key in ("pb_status", "pb_rule", "pb_exact", "pb_bound", "pb_pixels"):
+            assert record[key] == alone[key]
 
 
 def _far_tolerance(scene):
@@ -253,7 +279,7 @@ def test_single_moves_are_the_possible_pixels_that_alone_leave_the_tolerance(sce
 
 
 def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image(
-    scene, monkeypatch
+    scene, monkeypatch, attacks
 ):
     seed, R, t, factors, centers = scene
     eps, _ = _far_tolerance(scene)
@@ -268,16 +294,15 @@ def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_counterexample"][0] > 0.5
     # A model whose keypoint 0 never moves leaves it open: the attack proves nothing.
-    monkeypatch.setattr(pb, "_ATTACKS", {})
     never = np.zeros(len(centers))
     record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, never))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
     # Above the enumeration limit no move is sought (the regions are the bounds' slack).
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)
-    monkeypatch.setattr(pb, "_ATTACKS", {})
+    sought = len(attacks)
     record = _decide(scene, np.full((6, 46), 1.0), eps, backbone=_Ramp(centers, moved, gain))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "linearised"
-    assert not pb._ATTACKS
+    assert len(attacks) == sought
 
 
 def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
@@ -313,7 +338,7 @@ def test_above_the_limit_the_linearised_bound_decides(scene, monkeypatch):
     huge = _decide(scene, np.zeros((6, 46)), eps)
     assert huge["pb_status"] == "holds" and huge["pb_rule"] == "linearised"
     assert huge["pb_combinations"] == float(5**23) and isinstance(huge["pb_combinations"], float)
-    assert huge["pb_exact"] is None and not pb._ENUMERATED
+    assert huge["pb_exact"] is None
 
 
 @pytest.mark.parametrize("chunk", [1, 5, 10**5])
