@@ -37,7 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, fields
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -84,9 +84,17 @@ class Instance:
         return json.dumps(asdict(self), sort_keys=True)
 
 
+def _setting(default, help: str):
+    """A :class:`Settings` field and its command-line help (``python -m kpstudy campaign``
+    offers every field that has one)."""
+    return field(default=default, metadata={"help": help})
+
+
 @dataclass(frozen=True)
 class Settings:
-    """What every instance of a campaign shares.
+    """What every instance of a campaign shares: the one declaration of the campaign
+    settings, from which the command line (:func:`add_arguments`), the notebooks and the
+    profiles (their keywords) build a campaign.
 
     Attributes
     ----------
@@ -114,17 +122,64 @@ class Settings:
 
     checkpoint: str
     data_dir: str
-    method: str = "auto"
-    timeout: float = 60.0
-    nodes: int | None = None
-    check_samples: int = 200
-    hull_seed: int = 0
-    pose_bound_timeout: float | None = None
-    pose_bound_stride: int = 1
-    pose_bound_method: str = "forward"
-    pose_bound_nodes: int | None = None
-    pose_bound_start_depth: int = 0
-    tolerance_units: str = "heatmap"
+    method: str = _setting("auto", "auto (zonotope), ibp, forward, crown or zonotope")
+    timeout: float = _setting(60.0, "seconds per instance")
+    nodes: int | None = _setting(
+        None,
+        "node budget per instance of the allocation method (the same verdicts on any "
+        "machine; the seconds then only cap a slow one)",
+    )
+    check_samples: int = _setting(200, "hull images through the target model per 'holds'")
+    hull_seed: int = _setting(0, "which perturbed images make a local hull")
+    pose_bound_timeout: float | None = _setting(
+        None, "also run the pose-bound method, this many seconds per hull"
+    )
+    pose_bound_stride: int = _setting(1, "the pose-bound method's odd cell side (1: argmax)")
+    pose_bound_method: str = _setting(
+        "forward", "bounds of the pose-bound method's regions: forward, zonotope or ibp"
+    )
+    pose_bound_nodes: int | None = _setting(
+        None, "node budget of the pose-bound method per hull (the same verdicts on any machine)"
+    )
+    pose_bound_start_depth: int = _setting(
+        0, "splits of each hull before the pose-bound method's first bounds"
+    )
+    tolerance_units: str = _setting(
+        "heatmap",
+        "the allocation's reading: heatmap pixels (sound) or the paper's (allocated per "
+        "image pixel, used as heatmap pixels)",
+    )
+
+    def certify_options(self) -> dict:
+        """The keywords of :func:`kpstudy.certify.certify_cells` these settings give."""
+        options = {f.name: getattr(self, f.name) for f in fields(self)}
+        for name in ("checkpoint", "data_dir", "hull_seed"):
+            del options[name]
+        options["max_nodes"] = options.pop("nodes")
+        return options
+
+    @classmethod
+    def from_arguments(cls, args) -> Settings:
+        """The settings of parsed :func:`add_arguments` options (``args.checkpoint``,
+        ``args.data``)."""
+        chosen = {f.name: getattr(args, f.name) for f in fields(cls) if "help" in f.metadata}
+        return cls(str(args.checkpoint), str(args.data), **chosen)
+
+
+def add_arguments(parser) -> None:
+    """An ``argparse`` option per :class:`Settings` field with help: ``--pose-bound-nodes``
+    for ``pose_bound_nodes``, typed as the field and with its default."""
+    for f in fields(Settings):
+        if "help" not in f.metadata:
+            continue
+        kind = float if "float" in f.type else int if "int" in f.type else str
+        default = "" if f.default is None else f" (default {f.default})"
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=kind,
+            default=f.default,
+            help=f.metadata["help"] + default,
+        )
 
 
 def grid(
@@ -670,22 +725,9 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
         raise ValueError(f"instances: expected the instances of one hull, got {instances!r}")
     backbone, seed_of = _context(settings.checkpoint, settings.data_dir)
     vertices = instance_vertices(first, settings.data_dir, settings.hull_seed)
-    records = certify_cells(
-        backbone,
-        vertices,
-        seed_of(first.image_id),
-        [(i.alpha, i.kappa) for i in instances],
-        method=settings.method,
-        timeout=settings.timeout,
-        max_nodes=settings.nodes,
-        check_samples=settings.check_samples,
-        pose_bound_timeout=settings.pose_bound_timeout,
-        pose_bound_stride=settings.pose_bound_stride,
-        pose_bound_method=settings.pose_bound_method,
-        pose_bound_nodes=settings.pose_bound_nodes,
-        pose_bound_start_depth=settings.pose_bound_start_depth,
-        tolerance_units=settings.tolerance_units,
-    )
+    cells = [(i.alpha, i.kappa) for i in instances]
+    seed = seed_of(first.image_id)
+    records = certify_cells(backbone, vertices, seed, cells, **settings.certify_options())
     clipped = 0.0
     if first.kind in GLOBAL_KINDS:
         rows = load_perturbations(settings.data_dir, first.kind)["images"]
@@ -764,6 +806,10 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
+    for name in ("check_samples", "hull_seed"):
+        value = getattr(settings, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
     for name in ("nodes", "pose_bound_nodes"):
         nodes = getattr(settings, name)
         if nodes is not None and (

@@ -54,6 +54,7 @@ def main(argv=None) -> int:
         help="train the verification-friendly CNN from scratch (default: the shipped one)",
     )
 
+    from kpstudy.campaign import add_arguments
     from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig
 
     default = TrainConfig()
@@ -149,43 +150,7 @@ def main(argv=None) -> int:
     ca.add_argument("--ms", type=int, nargs="+", default=[2], help="hull sizes (local kinds)")
     ca.add_argument("--levels", type=float, nargs="+", help="b or c (global kinds; default all)")
     ca.add_argument("--seeds", type=int, help="first N seed images (default all)")
-    ca.add_argument("--timeout", type=float, default=60.0, help="seconds per instance")
-    ca.add_argument(
-        "--nodes",
-        type=int,
-        help="node budget per instance of the allocation method (the same verdicts on any "
-        "machine; the seconds then only cap a slow one)",
-    )
-    ca.add_argument(
-        "--pose-bound-timeout",
-        type=float,
-        help="also run the pose-bound method, this many seconds per hull",
-    )
-    ca.add_argument(
-        "--method", default="auto", help="auto (zonotope), ibp, forward, crown or zonotope"
-    )
-    ca.add_argument(
-        "--pose-bound-method",
-        default="forward",
-        help="bounds of the pose-bound method's regions: forward, zonotope or ibp",
-    )
-    ca.add_argument(
-        "--pose-bound-nodes",
-        type=int,
-        help="node budget of the pose-bound method per hull (the same verdicts on any machine)",
-    )
-    ca.add_argument(
-        "--pose-bound-start-depth",
-        type=int,
-        default=0,
-        help="splits of each hull before the pose-bound method's first bounds (default 0)",
-    )
-    ca.add_argument(
-        "--tolerance-units",
-        default="heatmap",
-        help="the allocation's reading: heatmap pixels (sound, default) or the paper's "
-        "(allocated per image pixel, used as heatmap pixels)",
-    )
+    add_arguments(ca)  # every campaign.Settings field
     ca.add_argument("--workers", type=int, default=1, help="local processes (default 1)")
     ca.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.1:8786")
     ca.add_argument("--out", help="also write the records as OUT.csv and OUT.md")
@@ -320,18 +285,7 @@ def _campaign(args) -> None:
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
         check_output_file(Path(f"{args.out}.csv"), "out")
-    settings = Settings(
-        args.checkpoint,
-        args.data,
-        args.method,
-        args.timeout,
-        nodes=args.nodes,
-        pose_bound_timeout=args.pose_bound_timeout,
-        pose_bound_method=args.pose_bound_method,
-        pose_bound_nodes=args.pose_bound_nodes,
-        pose_bound_start_depth=args.pose_bound_start_depth,
-        tolerance_units=args.tolerance_units,
-    )
+    settings = Settings.from_arguments(args)
     instances = grid(
         args.data,
         args.kind,

@@ -300,3 +300,24 @@ def test_store_paths_separate_models_and_settings(study, tmp_path, monkeypatch):
     assert path != store_path(tmp_path, "objects", Settings(str(other), str(data), timeout=5))
     monkeypatch.setattr("kpstudy.campaign.source_fingerprint", lambda: "other code")
     assert path != store_path(tmp_path, "objects", settings)
+
+
+def test_the_command_line_offers_every_setting_with_its_default():
+    import argparse
+    from dataclasses import fields
+
+    from kpstudy.campaign import add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    defaults = parser.parse_args([])
+    args = argparse.Namespace(checkpoint="c.pt", data="d", **vars(defaults))
+    assert Settings.from_arguments(args) == Settings("c.pt", "d")
+    chosen = parser.parse_args(["--pose-bound-nodes", "3", "--timeout", "2.5", "--method", "ibp"])
+    settings = Settings.from_arguments(argparse.Namespace(checkpoint="c", data="d", **vars(chosen)))
+    assert (settings.pose_bound_nodes, settings.timeout, settings.method) == (3, 2.5, "ibp")
+    offered = {a.dest for a in parser._actions} - {"help"}
+    assert offered == {f.name for f in fields(Settings)} - {"checkpoint", "data_dir"}
+    options = settings.certify_options()
+    assert options["max_nodes"] == settings.nodes and "nodes" not in options
+    assert options["pose_bound_nodes"] == 3 and "checkpoint" not in options

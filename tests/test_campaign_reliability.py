@@ -277,6 +277,8 @@ NOTES = "these are my notes, not a database\n" * 10
         (("--store", "{tmp}/notes.sqlite"), ("store:", "SQLite")),
         (("--timeout", 0, "--store", "{tmp}/fresh/s.sqlite"), ("timeout:",)),
         (("--nodes", 0, "--store", "{tmp}/fresh/s.sqlite"), ("nodes:",)),
+        (("--pose-bound-stride", 2, "--store", "{tmp}/fresh/s.sqlite"), ("pose_bound_stride:",)),
+        (("--check-samples", -1, "--store", "{tmp}/fresh/s.sqlite"), ("check_samples:",)),
         (
             ("--tolerance-units", "pixels", "--store", "{tmp}/fresh/s.sqlite"),
             ("tolerance_units:", "pixels"),
@@ -291,6 +293,8 @@ NOTES = "these are my notes, not a database\n" * 10
         "store_not_sqlite",
         "timeout_0",
         "nodes_0",
+        "stride_even",
+        "check_samples_negative",
         "tolerance_units_unknown",
         "scheduler_unreachable",
     ],
