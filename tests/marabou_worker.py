@@ -15,10 +15,10 @@ import time
 
 
 def serve(conn) -> None:
-    """The child: answer ``(onnx, vnnlib, seconds)`` jobs with ``(code, x, seconds)``,
+    """The child: answer ``(onnx, vnnlib, seconds)`` jobs with ``(code, x, y, seconds)``,
     ``code`` Marabou's answer (``'sat'``, ``'unsat'``, ``'TIMEOUT'``, …) or ``'error: …'``,
-    ``x`` the ONNX input of a ``sat`` answer (a list in the input's C order), else None;
-    ``None`` ends the child."""
+    ``x`` and ``y`` the ONNX input and output of a ``sat`` answer (lists in C order; ``y``
+    as Marabou's assignment has it), else None; ``None`` ends the child."""
     import warnings
 
     warnings.filterwarnings("ignore")  # "Tensorflow parser is unavailable"
@@ -35,12 +35,13 @@ def serve(conn) -> None:
             code, values, _ = network.solve(
                 filename=os.devnull, verbose=False, options=options, propertyFilename=vnnlib_path
             )
-            x = None
+            x = y = None
             if code == "sat":
                 x = [float(values[v]) for v in network.inputVars[0].flatten()]
+                y = [float(values[v]) for v in network.outputVars[0].flatten()]
         except Exception as exc:  # noqa: BLE001 - reported to the test as the answer
-            code, x = f"error: {type(exc).__name__}: {exc}", None
-        conn.send((code, x, time.perf_counter() - start))
+            code, x, y = f"error: {type(exc).__name__}: {exc}", None, None
+        conn.send((code, x, y, time.perf_counter() - start))
 
 
 class MarabouProcess:
@@ -59,15 +60,15 @@ class MarabouProcess:
         child.close()
 
     def solve(self, onnx_path, vnnlib_path, seconds: int):
-        """``(code, x, seconds)`` as :func:`serve` answers; ``('hung', None, s)`` when the
-        child had to be killed."""
+        """``(code, x, y, seconds)`` as :func:`serve` answers; ``('hung', None, None, s)``
+        when the child had to be killed."""
         start = time.perf_counter()
         self._conn.send((str(onnx_path), str(vnnlib_path), int(seconds)))
         if self._conn.poll(seconds + self.grace):
             return self._conn.recv()
         self._kill()
         self._start()
-        return "hung", None, time.perf_counter() - start
+        return "hung", None, None, time.perf_counter() - start
 
     def _kill(self) -> None:
         self._process.kill()

@@ -50,6 +50,18 @@ def test_layers_export_as_matmul_relu_add_only(tmp_path, cls):
     assert ops <= {"MatMul", "Relu", "Add"}
 
 
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_spacings_read_a_relu(tmp_path, n):
+    """The sorted u passes a Relu before the spacings' MatMul: fed by the sort's last Add
+    (two sources), Marabou 2.0.0 counted the next bias twice (docs/findings.md)."""
+    path = tmp_path / "map.onnx"
+    _export_onnx(BoxToSimplex(n), torch.zeros(1, n), "u", str(path), 17)
+    nodes = onnx.load(path).graph.node
+    made_by = {out: node.op_type for node in nodes for out in node.output}
+    (spacing,) = [node for node in nodes if "spacing" in node.input]
+    assert made_by[spacing.input[0]] == "Relu"
+
+
 def test_bad_dimension_is_named():
     with pytest.raises(ValueError, match="n: expected an integer >= 1"):
         BoxToSimplex(0)

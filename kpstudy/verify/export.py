@@ -76,8 +76,7 @@ class _Instance(nn.Module):
             self.register_buffer("vertices", input_set.vertices.reshape(n + 1, -1).to(dtype))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.hull:  # w @ V = (w − e_0) @ V + X0 as one Gemm with a bias: Marabou 2.0.0's
-            # ONNX reader mis-reads a constant Add before or after a MatMul
+        if self.hull:  # w @ V = (w − e_0) @ V + X0 as one Gemm with a bias
             x = F.linear(self.weights.linear(x), self.vertices.T, self.vertices[0])
             x = x.reshape(-1, *self.shape)
         return self.model(x).flatten(1)

@@ -12,7 +12,11 @@ continuous, so a box-input verifier that reads the exported network verifies exa
 hull. The sort is an odd–even transposition network of ``n`` rounds; each comparator is
 ``min(a, b) = a − relu(a − b)``, ``max(a, b) = b + relu(a − b)``, so the layer is
 ``MatMul``, ``Relu`` and ``Add`` in ONNX (exact in real arithmetic: its matrices hold only
-0 and ±1).
+0 and ±1). The sorted ``u`` (``≥ 0``, also in floating point) then passes one more ``Relu``,
+the identity there: without it the comparators' skip connections (``a + …``) give the
+linear layers after the sort two sources, and Marabou 2.0.0 (its network-level reasoner's
+``mergeWSLayers``) adds the bias of such a layer once per source when it merges the layer
+into the next linear one, i.e. counts the hull's ``X0`` twice.
 
 The layer returns the barycentric weights ``w = (1 − Σ λ, λ_1 … λ_n)`` of the ``n + 1``
 vertices, so that the image ``w @ V`` uses the vertices themselves (not rounded
@@ -105,6 +109,8 @@ class BoxToSimplex(nn.Module):
         """``w − e_0 = (−u_(n), λ)``: the sort and the spacings, without the constant."""
         for r in range(self.rounds):
             u = u + torch.relu(u @ getattr(self, f"diff{r}")) @ getattr(self, f"swap{r}")
+        if self.rounds:
+            u = torch.relu(u)  # the identity on sorted u ≥ 0; cuts the skip connections
         return u @ self.spacing
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
