@@ -1,8 +1,8 @@
 """kpstudy: certify heatmap-keypoint + PnP pose estimators against convex hulls of images.
 
-Pose-side core (no neural network): :mod:`kpstudy.geometry` (with the tolerance box Ξ),
-:mod:`kpstudy.pnp`, :mod:`kpstudy.sensitivity`, :mod:`kpstudy.allocation`,
-:mod:`kpstudy.montecarlo`. Networks and the verifier: :mod:`kpstudy.preprocess`,
+Pose-side core (no neural network): :mod:`kpstudy.pose.geometry` (with the tolerance box Ξ),
+:mod:`kpstudy.pose.pnp`, :mod:`kpstudy.pose.sensitivity`, :mod:`kpstudy.pose.allocation`,
+:mod:`kpstudy.pose.montecarlo`. Networks and the verifier: :mod:`kpstudy.preprocess`,
 :mod:`kpstudy.models`, :mod:`kpstudy.pooling` (the proxy's cells, on
 :func:`kpstudy.verify.ops.cell_pool`), :mod:`kpstudy.train`, :mod:`kpstudy.verify`,
 :mod:`kpstudy.certify`, :mod:`kpstudy.pose_bound`. The study:

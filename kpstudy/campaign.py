@@ -109,7 +109,7 @@ class Settings:
         seconds only cap a slow machine) and the hull's splits before the first bounds.
     tolerance_units : {'heatmap', 'paper'}
         How the allocation method reads its tolerances
-        (:data:`kpstudy.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
+        (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
     """
 
     checkpoint: str
@@ -579,7 +579,7 @@ def run_study(
     grid_options : dict
         :func:`grid`'s keywords (``alphas``, ``kappas``, ``seeds``, ``ms``, …).
     tolerance_units : iterable of str
-        The readings (:data:`kpstudy.allocation.TOLERANCE_UNITS`) the allocation method
+        The readings (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`) the allocation method
         runs under. The pose-bound method has no tolerances: it runs with the first only.
     pose_bound : dict, optional
         ``{model name: Settings fields of the pose-bound method}``; a model left out
@@ -779,7 +779,7 @@ def _check_settings(settings: Settings) -> None:
             f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
         )
 
-    from kpstudy.allocation import allocation_scale
+    from kpstudy.pose.allocation import allocation_scale
 
     allocation_scale(settings.tolerance_units, None)  # checks the name
     if settings.pose_bound_method not in REGION_METHODS:

@@ -33,13 +33,14 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy._memo import digest, remember
-from kpstudy.allocation import Allocation, allocate_tolerances, allocation_scale
 from kpstudy.evaluate import pose_errors
-from kpstudy.geometry import inside_tolerance, tolerance
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.pnp import solve_pnp
 from kpstudy.pooling import keypoint_pooling
+from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_scale
+from kpstudy.pose.geometry import inside_tolerance, tolerance
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 from kpstudy.pose_bound import HullPoseBound, argmax_outside
 from kpstudy.preprocess import (
     scale_factors,
@@ -47,7 +48,6 @@ from kpstudy.preprocess import (
     to_input_pixels,
     to_model_input,
 )
-from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.spec import ArgmaxSpec
 
@@ -128,10 +128,10 @@ class VerificationInstance:
     inputs : Tensor, (n+1, 3, s, s)
         The hull's vertices as model inputs (normalised; row 0 the seed image).
     allocation : Allocation
-        The tolerances (:func:`kpstudy.allocation.allocate_tolerances`): ``dv`` (K × [δu,
+        The tolerances (:func:`kpstudy.pose.allocation.allocate_tolerances`): ``dv`` (K × [δu,
         δv], the cells' half-widths in heatmap px), ``delta``, ``objective``.
     tolerance_units : str
-        How the allocation was computed (:data:`kpstudy.allocation.TOLERANCE_UNITS`).
+        How the allocation was computed (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`).
     centers : ndarray of int, (K, 2)
         Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels: the cells' centres.
     R : ndarray, (3, 3)
@@ -182,7 +182,7 @@ def build_instance(
         Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
         allocation weights.
     tolerance_units : {'heatmap', 'paper'}
-        How the allocation is read (:data:`kpstudy.allocation.TOLERANCE_UNITS`): its
+        How the allocation is read (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`): its
         integers are the cells' half-widths in heatmap pixels either way; under
         ``'paper'`` they were allocated per image pixel.
 
@@ -252,7 +252,7 @@ _ALLOCATIONS: dict = {}
 
 
 def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
-    """:func:`kpstudy.sensitivity.pose_sensitivity` (its first call in a process takes
+    """:func:`kpstudy.pose.sensitivity.pose_sensitivity` (its first call in a process takes
     about 2 s), kept by the content of its inputs: a campaign's instances of one seed
     image share it."""
     key = digest(P, V, K, R, t, () if scale is None else scale)
@@ -261,7 +261,7 @@ def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
 
 
 def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
-    """:func:`kpstudy.allocation.allocate_tolerances`, kept by the content of its inputs:
+    """:func:`kpstudy.pose.allocation.allocate_tolerances`, kept by the content of its inputs:
     a campaign's hulls of one seed image share its allocation per (α, κ)."""
     key = digest(M, eps_r, eps_t, [kappa, w1, w2, max_dv])
     make = lambda: allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=max_dv)  # noqa: E731

@@ -27,8 +27,8 @@ go and decides the pose error from that (docs/design.md §4.11):
    every witness image of the reachability search.
 
 Every PnP here is Levenberg–Marquardt from the nominal pose
-(:func:`kpstudy.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
-behind the camera, :class:`kpstudy.pnp.PnPResult`) counts as outside Ξ (an ``inf`` error).
+(:func:`kpstudy.pose.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
+behind the camera, :class:`kpstudy.pose.pnp.PnPResult`) counts as outside Ξ (an ``inf`` error).
 
 Verdict, the first rule that applies deciding (``pb_rule``):
 
@@ -59,11 +59,11 @@ import numpy as np
 import torch
 
 from kpstudy._memo import digest
-from kpstudy.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.proxy import build_proxy
-from kpstudy.pnp import solve_pnp_batch
 from kpstudy.pooling import cell_bounds, keypoint_pooling, num_cells
+from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
+from kpstudy.pose.pnp import solve_pnp_batch
 from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.verify import Regions, reachable_argmax
 from kpstudy.verify.reachable import check_search
@@ -619,7 +619,7 @@ def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.n
 
 def _pose_errors(seed, V, R, t) -> np.ndarray:
     """Pose errors ``(B, 6)`` of PnP (from the nominal pose) on keypoints ``V (B, K, 2)``;
-    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pnp.PnPResult`), so that
+    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pose.pnp.PnPResult`), so that
     it never lies inside Ξ."""
     B = len(V)
     pose = solve_pnp_batch(

@@ -88,7 +88,7 @@ class Profile:
         budget per instance (``None``: the seconds decide): the same verdicts on any
         machine.
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
-        run under (:data:`kpstudy.allocation.TOLERANCE_UNITS`), the first also with the
+        run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
     local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
         pose-bound method's :class:`kpstudy.campaign.Settings` fields in T-local and
@@ -138,8 +138,8 @@ class Profile:
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
-        from kpstudy.allocation import TOLERANCE_UNITS
         from kpstudy.campaign import Settings
+        from kpstudy.pose.allocation import TOLERANCE_UNITS
 
         readings = self.tolerance_units
         if (

@@ -48,7 +48,7 @@ import re
 import numpy as np
 import pandas as pd
 
-from kpstudy.geometry import POSE_AXES, tolerance
+from kpstudy.pose.geometry import POSE_AXES, tolerance
 
 __all__ = [
     "PAPER_T_GLOBAL",
@@ -308,7 +308,7 @@ def _eps(cell: pd.DataFrame) -> list[np.ndarray]:
 
 
 def t_prob(table: pd.DataFrame) -> pd.DataFrame:
-    """T-prob (paper Table 2): a :func:`kpstudy.montecarlo.soundness_completeness_table`
+    """T-prob (paper Table 2): a :func:`kpstudy.pose.montecarlo.soundness_completeness_table`
     with the paper's soundness and completeness beside ours."""
     out = table.copy()
     paper = [PAPER_T_PROB.get((k, a), (np.nan, np.nan)) for k, a in zip(out.kappa, out.alpha)]

@@ -17,7 +17,7 @@ from kpstudy.allocation_figures import (
     plot_allocation,
     plot_keypoint_samples,
 )
-from kpstudy.geometry import project_batch
+from kpstudy.pose.geometry import project_batch
 
 IMAGE_SIZE = (640, 400)
 HEATMAP = 64

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.allocation import allocate_tolerances
 from kpstudy.campaign import (
     Instance,
     ResultStore,
@@ -20,10 +19,11 @@ from kpstudy.campaign import (
 )
 from kpstudy.certify import SeedImage, build_instance, certify
 from kpstudy.data import load_keypoint_set
-from kpstudy.geometry import EPS_R, EPS_T
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.sensitivity import pose_sensitivity
 from kpstudy.pose_bound import argmax_outside
 from kpstudy.preprocess import scale_factors
-from kpstudy.sensitivity import pose_sensitivity
 from kpstudy.train import TrainConfig, load_checkpoint, train
 
 

@@ -1,4 +1,4 @@
-"""kpstudy.pnp's guards (issue 29, point 4): argument checks, and poses that PnP flags as not
+"""kpstudy.pose.pnp's guards (issue 29, point 4): argument checks, and poses that PnP flags as not
 valid (a point behind the camera, a run-away residual, collinear keypoints), which no
 caller counts as inside Ξ."""
 
@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from kpstudy import montecarlo, pose_bound
+from kpstudy import pose_bound
 from kpstudy.evaluate import pose_errors
-from kpstudy.geometry import EPS_R, EPS_T, project_batch
-from kpstudy.montecarlo import probabilistic_soundness, soundness_completeness_table
-from kpstudy.pnp import PnPResult, solve_pnp, solve_pnp_batch
+from kpstudy.pose import montecarlo
+from kpstudy.pose.geometry import EPS_R, EPS_T, project_batch
+from kpstudy.pose.montecarlo import probabilistic_soundness, soundness_completeness_table
+from kpstudy.pose.pnp import PnPResult, solve_pnp, solve_pnp_batch
 from tests.conftest import views
 
 

@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices
-from kpstudy.allocation import allocate_tolerances
 from kpstudy.certify import certify, target_pose_errors
-from kpstudy.geometry import EPS_R, EPS_T
-from kpstudy.pnp import solve_pnp
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.pnp import solve_pnp
 from kpstudy.pose_bound import linearised_bound
 from kpstudy.preprocess import to_model_input
 from kpstudy.train import load_checkpoint
