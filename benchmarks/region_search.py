@@ -20,11 +20,11 @@ import numpy as np
 
 from benchmarks.bound_profile import _checkpoint
 from benchmarks.common import emit, study_hulls
-from kpstudy.data import load_keypoint_set
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.preprocess import scale_factors, to_input_pixels, to_model_input
 from kpstudy.models.proxy import build_proxy
-from kpstudy.pooling import keypoint_pooling
-from kpstudy.preprocess import scale_factors, to_input_pixels, to_model_input
-from kpstudy.train import load_checkpoint
+from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ConvexHull, reachable_argmax
 
 

@@ -22,11 +22,11 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from kpstudy import _checks
+from kpstudy.models.preprocess import scale_factors
 from kpstudy.pose.allocation import allocate_tolerances
 from kpstudy.pose.geometry import euler_from_matrix, matrix_from_euler, project_batch, tolerance
 from kpstudy.pose.pnp import solve_pnp
 from kpstudy.pose.sensitivity import pose_sensitivity
-from kpstudy.preprocess import scale_factors
 
 __all__ = [
     "ALPHAS",

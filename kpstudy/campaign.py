@@ -703,8 +703,8 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
 def _context(checkpoint: str, data_dir: str):
     """The backbone and a seed-image lookup over the test split, loaded once per process."""
     from kpstudy.certify import SeedImage
-    from kpstudy.data import load_keypoint_set
-    from kpstudy.train import load_checkpoint
+    from kpstudy.models.data import load_keypoint_set
+    from kpstudy.models.training import load_checkpoint
 
     backbone, _ = load_checkpoint(checkpoint)
     test = load_keypoint_set(data_dir, "test", backbone.input_size)

@@ -33,21 +33,21 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy._memo import digest, remember
-from kpstudy.evaluate import pose_errors
+from kpstudy.models.evaluation import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
-from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.pooling import keypoint_pooling
-from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_scale
-from kpstudy.pose.geometry import inside_tolerance, tolerance
-from kpstudy.pose.pnp import solve_pnp
-from kpstudy.pose.sensitivity import pose_sensitivity
-from kpstudy.pose_bound import HullPoseBound, argmax_outside
-from kpstudy.preprocess import (
+from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.preprocess import (
     scale_factors,
     to_image_pixels,
     to_input_pixels,
     to_model_input,
 )
+from kpstudy.models.proxy import KeypointProxy, build_proxy
+from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_scale
+from kpstudy.pose.geometry import inside_tolerance, tolerance
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
+from kpstudy.pose_bound import HullPoseBound, argmax_outside
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.spec import ArgmaxSpec
 
@@ -86,7 +86,7 @@ class SeedImage:
 
     @classmethod
     def from_keypoint_set(cls, data, index: int) -> SeedImage:
-        """Image ``index`` of a :class:`kpstudy.data.KeypointSet`."""
+        """Image ``index`` of a :class:`kpstudy.models.data.KeypointSet`."""
         return cls(
             int(data.image_ids[index]),
             data.image_keypoints[index],
@@ -99,7 +99,7 @@ class SeedImage:
 def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImage, R, t):
     """Pose errors ``(B, 6)`` (degrees, metres) of softmax → DSNT → PnP on ``images``
     ``(B, 3, s, s)`` (normalised model inputs) against the pose ``(R, t)``; ``inf`` where
-    PnP rejects the keypoints (:func:`kpstudy.evaluate.pose_errors`)."""
+    PnP rejects the keypoints (:func:`kpstudy.models.evaluation.pose_errors`)."""
     with torch.no_grad():
         uv = dsnt_keypoints(backbone(images).float()).double().numpy()  # heatmap pixels
     image_uv = to_image_pixels(uv, scale_factors(seed.image_size, backbone.heatmap_size))

@@ -54,7 +54,7 @@ def main(argv=None) -> int:
         help="train the verification-friendly CNN from scratch (default: the shipped one)",
     )
 
-    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig
+    from kpstudy.models.training import CERTIFIED_WEIGHT, TrainConfig
 
     default = TrainConfig()
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
@@ -263,7 +263,7 @@ def _train(args) -> None:
     import torch
 
     from kpstudy.io import check_output_file
-    from kpstudy.train import (
+    from kpstudy.models.training import (
         CERTIFIED_WEIGHT,
         TrainConfig,
         check_device,
@@ -294,8 +294,8 @@ def _train(args) -> None:
 def _evaluate(args) -> None:
     import pandas as pd
 
-    from kpstudy.evaluate import evaluate
     from kpstudy.io import check_writable, write_table, write_text_atomic
+    from kpstudy.models.evaluation import evaluate
 
     if args.out:  # OUT.csv, OUT.md and OUT_images.csv go beside each other
         check_writable(Path(args.out).parent, "out")

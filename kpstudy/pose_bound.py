@@ -60,11 +60,11 @@ import torch
 
 from kpstudy._memo import digest
 from kpstudy.models.heads import argmax_keypoints
+from kpstudy.models.pooling import cell_bounds, keypoint_pooling, num_cells
+from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.models.proxy import build_proxy
-from kpstudy.pooling import cell_bounds, keypoint_pooling, num_cells
 from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp_batch
-from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.verify import Regions, reachable_argmax
 from kpstudy.verify.reachable import check_search
 
@@ -99,7 +99,7 @@ ENUMERATION_CHUNK = 10**5
 def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
     """Heatmap pixels ``(n_k, 2)`` as ``(u, v)`` of each keypoint's possible cells.
 
-    ``pooling`` is the (horizontal, vertical) :class:`kpstudy.pooling.PoolParams` pair of
+    ``pooling`` is the (horizontal, vertical) :class:`kpstudy.models.pooling.PoolParams` pair of
     each keypoint that the regions' proxy used; a cell contributes all its real pixels.
     """
     out = []
@@ -594,7 +594,7 @@ def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.n
     base : ndarray, shape (K, 2)
         Heatmap pixels ``(u, v)`` the other keypoints keep (the seed image's argmax).
     factors : pair
-        :func:`kpstudy.preprocess.scale_factors` of the seed image and the heatmaps.
+        :func:`kpstudy.models.preprocess.scale_factors` of the seed image and the heatmaps.
     R, t : nominal pose; eps : ndarray, shape (6,), Ξ's half-widths (degrees, metres).
 
     Returns

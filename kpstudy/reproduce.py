@@ -5,10 +5,10 @@ Stages, in order; each is skipped when its outputs are current:
 1. **data** (paper §8.1): the rendered COCO dataset (data_gen), the perturbation sets of
    its test seed images (objects at the render's resolution, blocks at the ResNet-18
    input, brightness and contrast at the CNN input). Reused when its settings match.
-2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.train.train`,
+2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.models.training.train`,
    which resumes an interrupted run and returns a finished one as it is), and the
    verification-friendly CNN (:data:`FRIENDLY`: the affine-decoder CNN trained with the
-   bound term of :mod:`kpstudy.certified`). Its quick-profile checkpoint ships with
+   bound term of :mod:`kpstudy.models.certified`). Its quick-profile checkpoint ships with
    kpstudy (:data:`SHIPPED`) and is copied when it was made by the same recipe on the
    same dataset; otherwise, or with ``retrain_friendly``, it is trained.
 3. **notebooks**: ``notebooks/NN_*.ipynb`` run by papermill with the profile's
@@ -355,9 +355,9 @@ def checkpoints(out: Path) -> dict[str, Path]:
 
 
 def friendly_recipe(prof: Profile):
-    """The verification-friendly CNN's two :class:`kpstudy.train.TrainConfig` stages on
+    """The verification-friendly CNN's two :class:`kpstudy.models.training.TrainConfig` stages on
     ``prof``; the second's ``init`` is left ``None`` (the first stage's weights fill it)."""
-    from kpstudy.train import TrainConfig
+    from kpstudy.models.training import TrainConfig
 
     common = dict(images=prof.cnn_images, seed=prof.seed)
     return TrainConfig(**FRIENDLY, **common), TrainConfig(**FRIENDLY_FINETUNE, **common)
@@ -371,7 +371,7 @@ def train_models(
     import torch
 
     from data_gen.dataset import load_coco
-    from kpstudy.train import TrainConfig, config_of, train, weights_digest
+    from kpstudy.models.training import TrainConfig, config_of, train, weights_digest
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
@@ -435,12 +435,12 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
     :data:`FRIENDLY` then :data:`FRIENDLY_FINETUNE` on ``data_dir``) to ``target`` without
     its optimiser state (the checkpoint is finished), and its card ``target.json``: the
     recipe (and the first stage's, ``init_recipe``), the test-split
-    metrics of :func:`kpstudy.evaluate.evaluate` and the heatmaps' sum and absolute sum
+    metrics of :func:`kpstudy.models.evaluation.evaluate` and the heatmaps' sum and absolute sum
     on :func:`probe_input`. Returns the card."""
     import torch
 
-    from kpstudy.evaluate import evaluate
-    from kpstudy.train import load_checkpoint
+    from kpstudy.models.evaluation import evaluate
+    from kpstudy.models.training import load_checkpoint
 
     backbone, state = load_checkpoint(checkpoint)
     if state["epoch"] < state["config"]["epochs"]:

@@ -18,13 +18,13 @@ from kpstudy.campaign import (
     store_path,
 )
 from kpstudy.certify import SeedImage, build_instance, certify
-from kpstudy.data import load_keypoint_set
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.preprocess import scale_factors
+from kpstudy.models.training import TrainConfig, load_checkpoint, train
 from kpstudy.pose.allocation import allocate_tolerances
 from kpstudy.pose.geometry import EPS_R, EPS_T
 from kpstudy.pose.sensitivity import pose_sensitivity
 from kpstudy.pose_bound import argmax_outside
-from kpstudy.preprocess import scale_factors
-from kpstudy.train import TrainConfig, load_checkpoint, train
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from data_gen.perturb import make_perturbations
 from kpstudy import tables
 from kpstudy.campaign import ResultStore, Settings, grid, run_campaign
 from kpstudy.cli import main
-from kpstudy.train import TrainConfig, train
+from kpstudy.models.training import TrainConfig, train
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD_IMAGE = 18  # the tiny dataset's second test image

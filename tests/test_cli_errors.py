@@ -58,7 +58,7 @@ def read_only(tmp_path):
 
 @pytest.fixture(scope="module")
 def checkpoint(tiny_dataset, tmp_path_factory):
-    from kpstudy.train import TrainConfig, train
+    from kpstudy.models.training import TrainConfig, train
 
     path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
     train(tiny_dataset, path, TrainConfig(epochs=1, batch_size=4, images=8, seed=1), progress=False)

@@ -15,7 +15,7 @@ from kpstudy.models import (
     build_proxy,
     dsnt_keypoints,
 )
-from kpstudy.pooling import keypoint_pooling
+from kpstudy.models.pooling import keypoint_pooling
 from kpstudy.verify import export_onnx
 from kpstudy.verify.graph import trace
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from kpstudy import pose_bound
-from kpstudy.evaluate import pose_errors
+from kpstudy.models.evaluation import pose_errors
 from kpstudy.pose import montecarlo
 from kpstudy.pose.geometry import EPS_R, EPS_T, project_batch
 from kpstudy.pose.montecarlo import probabilistic_soundness, soundness_completeness_table
@@ -171,8 +171,8 @@ def test_montecarlo_refuses_an_invalid_nominal_pose(P, K, monkeypatch):
 
 
 def test_pose_bound_and_evaluate_give_flagged_poses_an_infinite_error(P, K, monkeypatch):
-    from kpstudy import evaluate as evaluate_module
     from kpstudy.certify import SeedImage
+    from kpstudy.models import evaluation as evaluate_module
 
     R, t, V = views(3, 25, K, P)
     seed = SeedImage(0, V[0], K, P, (640, 400))

@@ -15,9 +15,9 @@ from torch import nn
 from kpstudy import pose_bound as pb
 from kpstudy import tables
 from kpstudy.certify import SeedImage
+from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
-from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.verify import ConvexHull
 from tests.conftest import IMAGE_SIZE, views
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from kpstudy.data import load_keypoint_set
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.training import load_checkpoint, pck, predict
 from kpstudy.pose.geometry import POSE_AXES, inside_tolerance, pose_error, tolerance
 from kpstudy.pose.pnp import solve_pnp
-from kpstudy.train import load_checkpoint, pck, predict
 
 ALPHAS = (0.5, 1.0, 1.5, 2.0)
 
