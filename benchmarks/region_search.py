@@ -3,7 +3,7 @@
 For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m`` and
 overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
 ``bound_profile``), :func:`kpstudy.verify.reachable_argmax` on each backbone's stride-1
-proxy (the argmax head's own pixels, as :func:`kpstudy.pose_bound.pose_bound` builds it)
+proxy (the argmax head's own pixels, as :func:`kpstudy.certify.pose_bound` builds it)
 with ``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
 ``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
 node, what stopped the search, whether the regions are complete (one witnessed pixel per

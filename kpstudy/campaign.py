@@ -663,7 +663,7 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
     in this process, one record each: what depends on the hull alone, such as the
     pose-bound method's region search, is made once (:func:`kpstudy.certify.certify_cells`)."""
     from data_gen.perturb import load_perturbations
-    from kpstudy.certify import certify_cells
+    from kpstudy.certify.allocation_method import certify_cells
 
     first = instances[0]
     if len(_by_hull(instances)) != 1:
@@ -702,7 +702,7 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
 @functools.lru_cache(maxsize=2)
 def _context(checkpoint: str, data_dir: str):
     """The backbone and a seed-image lookup over the test split, loaded once per process."""
-    from kpstudy.certify import SeedImage
+    from kpstudy.certify.allocation_method import SeedImage
     from kpstudy.models.data import load_keypoint_set
     from kpstudy.models.training import load_checkpoint
 

@@ -7,8 +7,8 @@ A *method* is one way the study decides an instance, read from the columns of a
 * ``alloc (heatmap)`` / ``alloc (paper)``: the allocation method (the paper's) under each
   tolerance reading (``tolerance_units``; plain ``alloc`` for tables without the column):
   ``verified_rate``, ``holds`` / ``violated`` / ``unknown``, ``time_*``;
-* ``pb``: the pose-bound method (:mod:`kpstudy.pose_bound`), on the rows that have its
-  columns (``pb_*``). Its time is one region search per hull, counted in full in each
+* ``pb``: the pose-bound method (:mod:`kpstudy.certify.pose_bound_method`), on the rows that
+  have its columns (``pb_*``). Its time is one region search per hull, counted in full in each
   (κ, α) cell of the hull.
 
 :func:`method_cells` turns a table into one row per model, method and cell (the data of

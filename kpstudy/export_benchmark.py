@@ -132,7 +132,7 @@ def export_benchmark(
 
     from kpstudy import __version__
     from kpstudy.campaign import Settings, _context, instance_vertices, provenance
-    from kpstudy.certify import build_instance
+    from kpstudy.certify.allocation_method import build_instance
     from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
     from kpstudy.verify.export import INPUT_FORMS, VNNLIB_VERSIONS, export_instance
 

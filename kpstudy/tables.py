@@ -24,7 +24,7 @@ its axes and reports, per cell:
   proofs;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
-* with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
+* with the pose-bound method's records (``pb_*``, :mod:`kpstudy.certify.pose_bound_method`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as ``capped``,
   from ``pb_stopped``), ``pb_seeds_inside`` (seeds whose *argmax* → PnP pose lies in Ξ,
   ``pb_seed_inside``: the pipeline this method certifies; the target model's ``seed_inside``
@@ -137,7 +137,7 @@ PAPER_T_PROB = {
 }
 
 _STATUSES = ("holds", "violated", "unknown")
-_PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.pose_bound's pb_rule
+_PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.certify.pose_bound_method's pb_rule
 
 
 def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -291,7 +291,7 @@ _JSON_FLOATS = {"inf": "Infinity", "nan": "NaN"}
 
 
 def _pb_rules(cell: pd.DataFrame) -> pd.Series:
-    """The rule that decided each record's ``pb_status`` (:mod:`kpstudy.pose_bound`):
+    """The rule that decided each record's ``pb_status`` (:mod:`kpstudy.certify.pose_bound_method`):
     ``pb_rule`` where stored, else the only rules of the code before it (``'witness'``
     for ``violated``, ``'linearised'`` for ``holds`` / ``unknown``); None without a
     ``pb_status`` (e.g. an ``error`` record)."""

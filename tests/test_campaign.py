@@ -1,4 +1,5 @@
-"""kpstudy.certify and kpstudy.campaign on a rendered tiny dataset and a tiny trained CNN."""
+"""kpstudy.certify.allocation_method and kpstudy.campaign on a rendered tiny dataset and a
+tiny trained CNN."""
 
 import shutil
 
@@ -17,14 +18,14 @@ from kpstudy.campaign import (
     run_study,
     store_path,
 )
-from kpstudy.certify import SeedImage, build_instance, certify
+from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
+from kpstudy.certify.pose_bound_method import argmax_outside
 from kpstudy.models.data import load_keypoint_set
 from kpstudy.models.preprocess import scale_factors
 from kpstudy.models.training import TrainConfig, load_checkpoint, train
 from kpstudy.pose.allocation import allocate_tolerances
 from kpstudy.pose.geometry import EPS_R, EPS_T
 from kpstudy.pose.sensitivity import pose_sensitivity
-from kpstudy.pose_bound import argmax_outside
 
 
 @pytest.fixture(scope="module")

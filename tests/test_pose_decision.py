@@ -1,6 +1,6 @@
-"""kpstudy.pose_bound's exact decision (issue 27, part 2): PnP over every combination of
-region pixels decides where there are few enough, the linearised bound only above that, and
-the tables count which rule decided."""
+"""kpstudy.certify.pose_bound_method's exact decision (issue 27, part 2): PnP over every
+combination of region pixels decides where there are few enough, the linearised bound only
+above that, and the tables count which rule decided."""
 
 import io
 import itertools
@@ -12,9 +12,9 @@ import pytest
 import torch
 from torch import nn
 
-from kpstudy import pose_bound as pb
 from kpstudy import tables
-from kpstudy.certify import SeedImage
+from kpstudy.certify import pose_bound_method as pb
+from kpstudy.certify.allocation_method import SeedImage
 from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch

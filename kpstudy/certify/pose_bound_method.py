@@ -158,7 +158,7 @@ def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) ->
 
     Parameters
     ----------
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
         Its ``points_3d (K, 3)`` (metres) and intrinsics ``K (3, 3)``.
     keypoints : sequence of K arrays, shape (n_k, 2)
         Possible ``(u, v)`` of keypoint k, image pixels; ``n_k ≥ 1``. The combinations are
@@ -236,7 +236,7 @@ class HullPoseBound:
         Heatmap backbone with ``heatmap_size`` and ``input_size``.
     hull : kpstudy.verify.ConvexHull
         Model inputs ``(n+1, 3, s, s)``, the seed first.
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
     R, t : ndarray, shapes (3, 3) and (3,)
         Nominal pose (PnP on the ground truth; t in metres): every PnP here starts there
         and its error is measured from it.
@@ -588,7 +588,7 @@ def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.n
 
     Parameters
     ----------
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
     pixels : sequence of K arrays, shape (n_k, 2)
         Possible heatmap pixels ``(u, v)`` of each keypoint.
     base : ndarray, shape (K, 2)

@@ -9,8 +9,9 @@ ground truth and the vertices of a convex hull of perturbed images:
 4. pooling cells of side ``2δv + 1`` centred on the rounded ground-truth keypoints → the
    proxy network and its spec ("each keypoint's own cell wins");
 5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
-6. optionally, on the same hull, the pose-bound method (:mod:`kpstudy.pose_bound`): where
-   each keypoint's argmax can go, and the pose-error bound that follows.
+6. optionally, on the same hull, the pose-bound method
+   (:mod:`kpstudy.certify.pose_bound_method`): where each keypoint's argmax can go, and the
+   pose-error bound that follows.
 
 Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
 verifying them (:mod:`kpstudy.export_benchmark` writes them for other verifiers).
@@ -33,6 +34,7 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy._memo import digest, remember
+from kpstudy.certify.pose_bound_method import HullPoseBound, argmax_outside
 from kpstudy.models.evaluation import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.pooling import keypoint_pooling
@@ -47,7 +49,6 @@ from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_
 from kpstudy.pose.geometry import inside_tolerance, tolerance
 from kpstudy.pose.pnp import solve_pnp
 from kpstudy.pose.sensitivity import pose_sensitivity
-from kpstudy.pose_bound import HullPoseBound, argmax_outside
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.spec import ArgmaxSpec
 
@@ -300,7 +301,7 @@ def certify_cells(
 
     The cells share the hull, so what depends on the hull alone is made once: the
     pose-bound method's region search, enumeration and attacks (a
-    :class:`kpstudy.pose_bound.HullPoseBound`).
+    :class:`kpstudy.certify.pose_bound_method.HullPoseBound`).
 
     Parameters
     ----------
@@ -315,7 +316,7 @@ def certify_cells(
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
     pose_bound_timeout : float, optional
-        Seconds for the second method, :class:`kpstudy.pose_bound.HullPoseBound` (reachable
+        Seconds for the second method, :class:`kpstudy.certify.HullPoseBound` (reachable
         keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
     pose_bound_stride : int
         Its cell side in heatmap pixels (1: the argmax pixel itself).
@@ -323,7 +324,7 @@ def certify_cells(
         Its bound method (``'forward'`` or ``'zonotope'``).
     pose_bound_nodes, pose_bound_start_depth : int
         Its node budget (``None``: the seconds alone) and the hull's splits before the
-        first bounds (:class:`kpstudy.pose_bound.HullPoseBound`'s ``max_nodes``,
+        first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
         ``start_depth``).
 
     Returns
@@ -346,7 +347,7 @@ def certify_cells(
         Ξ: what a ``holds`` under the ``'paper'`` reading lets through; None unless
         ``holds``), ``empirical_samples``, ``tolerance_units``; with
         ``pose_bound_timeout``, the ``pb_*`` entries of
-        :meth:`kpstudy.pose_bound.HullPoseBound.decide`.
+        :meth:`kpstudy.certify.pose_bound_method.HullPoseBound.decide`.
     """
     if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
         raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
