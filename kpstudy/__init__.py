@@ -6,8 +6,8 @@ Pose-side core (no neural network): :mod:`kpstudy.pose.geometry` (with the toler
 :mod:`kpstudy.models`, :mod:`kpstudy.models.pooling` (the proxy's cells, on
 :func:`kpstudy.verify.ops.cell_pool`), :mod:`kpstudy.models.training`, :mod:`kpstudy.verify`,
 :mod:`kpstudy.certify.allocation_method`, :mod:`kpstudy.certify.pose_bound_method`. The study:
-:mod:`kpstudy.campaign`, :mod:`kpstudy.tables`, :mod:`kpstudy.report`,
-:mod:`kpstudy.reproduce` and the notebooks. Conventions are those of docs/design.md §3.
+:mod:`kpstudy.study.campaign`, :mod:`kpstudy.study.tables`, :mod:`kpstudy.study.report`,
+:mod:`kpstudy.study.reproduction` and the notebooks. Conventions are those of docs/design.md §3.
 """
 
 __version__ = "0.1.0"

@@ -218,7 +218,7 @@ def main(argv=None) -> int:
     try:
         if args.command == "reproduce":
             from kpstudy.io import check_writable
-            from kpstudy.reproduce import STAGES, profile, reproduce
+            from kpstudy.study.reproduction import STAGES, profile, reproduce
 
             prof = profile(
                 args.profile,
@@ -315,8 +315,8 @@ def _campaign(args) -> None:
     import pandas as pd
     from tqdm.auto import tqdm
 
-    from kpstudy.campaign import Settings, grid, run_campaign
     from kpstudy.io import check_output_file, write_table
+    from kpstudy.study.campaign import Settings, grid, run_campaign
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
         check_output_file(Path(f"{args.out}.csv"), "out")
@@ -372,8 +372,8 @@ def _export_benchmark(args, argv) -> None:
     written."""
     import shlex
 
-    from kpstudy.campaign import grid
-    from kpstudy.export_benchmark import export_benchmark
+    from kpstudy.study.campaign import grid
+    from kpstudy.study.vnncomp import export_benchmark
 
     if not Path(args.checkpoint).is_file():
         raise FileNotFoundError(f"checkpoint: no file at {args.checkpoint}")

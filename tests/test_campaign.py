@@ -1,4 +1,4 @@
-"""kpstudy.certify.allocation_method and kpstudy.campaign on a rendered tiny dataset and a
+"""kpstudy.certify.allocation_method and kpstudy.study.campaign on a rendered tiny dataset and a
 tiny trained CNN."""
 
 import shutil
@@ -8,7 +8,15 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.campaign import (
+from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
+from kpstudy.certify.pose_bound_method import argmax_outside
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.preprocess import scale_factors
+from kpstudy.models.training import TrainConfig, load_checkpoint, train
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.sensitivity import pose_sensitivity
+from kpstudy.study.campaign import (
     Instance,
     ResultStore,
     Settings,
@@ -18,14 +26,6 @@ from kpstudy.campaign import (
     run_study,
     store_path,
 )
-from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
-from kpstudy.certify.pose_bound_method import argmax_outside
-from kpstudy.models.data import load_keypoint_set
-from kpstudy.models.preprocess import scale_factors
-from kpstudy.models.training import TrainConfig, load_checkpoint, train
-from kpstudy.pose.allocation import allocate_tolerances
-from kpstudy.pose.geometry import EPS_R, EPS_T
-from kpstudy.pose.sensitivity import pose_sensitivity
 
 
 @pytest.fixture(scope="module")
@@ -299,5 +299,5 @@ def test_store_paths_separate_models_and_settings(study, tmp_path, monkeypatch):
     state["epoch"] += 1
     torch.save(state, other)
     assert path != store_path(tmp_path, "objects", Settings(str(other), str(data), timeout=5))
-    monkeypatch.setattr("kpstudy.campaign.source_fingerprint", lambda: "other code")
+    monkeypatch.setattr("kpstudy.study.campaign.source_fingerprint", lambda: "other code")
     assert path != store_path(tmp_path, "objects", settings)

@@ -252,7 +252,7 @@ def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     import json
 
-    from kpstudy.reproduce import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
+    from kpstudy.study.reproduction import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
 
     backbone, state = load_checkpoint(SHIPPED)
     card = json.loads(SHIPPED.with_suffix(".json").read_text())
@@ -272,7 +272,7 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
 def test_ship_friendly_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):
     import json
 
-    from kpstudy.reproduce import ship_friendly
+    from kpstudy.study.reproduction import ship_friendly
 
     config = TrainConfig("cnn_affine", epochs=1, batch_size=4, images=4, seed=2)
     path = tmp_path / "trained.pt"

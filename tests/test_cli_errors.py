@@ -225,7 +225,7 @@ def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
     import nbformat
     import papermill
 
-    from kpstudy.reproduce import _ipc_kernel
+    from kpstudy.study.reproduction import _ipc_kernel
 
     notebook = nbformat.v4.new_notebook()
     notebook.cells = [nbformat.v4.new_code_cell("x = 1"), nbformat.v4.new_code_cell("x * 2")]

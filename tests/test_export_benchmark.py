@@ -14,10 +14,10 @@ import torch
 
 from data_gen.perturb import hull_vertices
 from kpstudy import __version__
-from kpstudy.campaign import _context, grid
 from kpstudy.certify.allocation_method import build_instance
 from kpstudy.cli import main
-from kpstudy.export_benchmark import instance_name
+from kpstudy.study.campaign import _context, grid
+from kpstudy.study.vnncomp import instance_name
 from kpstudy.verify.export import read_vnnlib_polytope
 from kpstudy.verify.simplex_map import box_of_lambda
 from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
@@ -222,7 +222,7 @@ def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatc
     """A seed build_instance refuses is listed in README.md; a grid of only such seeds is
     refused, naming ``instances``, with nothing left behind."""
     import kpstudy.certify.allocation_method
-    from kpstudy.export_benchmark import export_benchmark
+    from kpstudy.study.vnncomp import export_benchmark
 
     data, checkpoint = study
     instances = grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)

@@ -14,7 +14,7 @@ ground truth and the vertices of a convex hull of perturbed images:
    pose-error bound that follows.
 
 Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
-verifying them (:mod:`kpstudy.export_benchmark` writes them for other verifiers).
+verifying them (:mod:`kpstudy.study.vnncomp` writes them for other verifiers).
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for

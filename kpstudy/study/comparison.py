@@ -2,7 +2,7 @@
 every method's verified rate and time per instance in one figure, and a compact table.
 
 A *method* is one way the study decides an instance, read from the columns of a
-:mod:`kpstudy.tables` table:
+:mod:`kpstudy.study.tables` table:
 
 * ``alloc (heatmap)`` / ``alloc (paper)``: the allocation method (the paper's) under each
   tolerance reading (``tolerance_units``; plain ``alloc`` for tables without the column):
@@ -79,7 +79,7 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     Parameters
     ----------
     table : DataFrame
-        :func:`kpstudy.tables.t_local` (``t_global``, ``t_resnet``) output, as returned or
+        :func:`kpstudy.study.tables.t_local` (``t_global``, ``t_resnet``) output, as returned or
         read back from its CSV; columns a table of an older version lacks (``model``,
         ``tolerance_units``, ``pb_*``, ``time_holds_mean`` …) are taken as absent.
 

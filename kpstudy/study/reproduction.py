@@ -17,7 +17,7 @@ Stages, in order; each is skipped when its outputs are current:
    ``figures/``. A notebook reruns only when its parameters or its inputs changed; the
    verification campaigns inside (06–08) resume from their SQLite stores.
 4. **report**: ``REPORT.md``, every table and figure with a short reading of the trends
-   (:mod:`kpstudy.report`).
+   (:mod:`kpstudy.study.report`).
 
 The ``quick`` profile runs everything at reduced counts on 2 CPU cores; ``paper`` has the
 paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and is meant for a
@@ -36,7 +36,7 @@ from pathlib import Path
 
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
 #: The verification-friendly CNN's recipe, first stage (``TrainConfig`` fields beside the
 #: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
@@ -68,7 +68,7 @@ FRIENDLY_FINETUNE = dict(
 )
 #: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`
 #: then :data:`FRIENDLY_FINETUNE`.
-SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_affine_quick.pt"
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class Profile:
         run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
     local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
-        pose-bound method's :class:`kpstudy.campaign.Settings` fields in T-local and
+        pose-bound method's :class:`kpstudy.study.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
         hull: the same verdicts on any machine), ``pose_bound_start_depth``. A model left
@@ -138,8 +138,8 @@ class Profile:
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
-        from kpstudy.campaign import Settings
         from kpstudy.pose.allocation import TOLERANCE_UNITS
+        from kpstudy.study.campaign import Settings
 
         readings = self.tolerance_units
         if (
@@ -293,7 +293,7 @@ def reproduce(
         elif stage == "notebooks":
             run_notebooks(prof, out, scheduler=scheduler, progress=progress)
         else:
-            from kpstudy.report import write_report
+            from kpstudy.study.report import write_report
 
             write_report(out, asdict(prof))
         timings[stage] = round(time.perf_counter() - start, 1)

@@ -1,6 +1,6 @@
 """The verification tables of paper §8.4 from campaign records, the paper's numbers beside ours.
 
-A campaign record (:func:`kpstudy.campaign.run_campaign`) is one instance: its grid
+A campaign record (:func:`kpstudy.study.campaign.run_campaign`) is one instance: its grid
 fields (``kind``, ``m``, ``overlapping``, ``level``, ``alpha``, ``kappa``) and the
 certificate's (``status``, ``time``, ``seed_inside``, …). Each table groups records by
 its axes and reports, per cell:
