@@ -9,46 +9,34 @@ is the regions → PnP method: where each keypoint's argmax can go over the hull
 pose-error verdict that follows (:func:`pose_bound`, :class:`HullPoseBound`;
 docs/design.md §4.11–4.12).
 
-May import: the infrastructure (``kpstudy._checks``, ``kpstudy._memo``, ``kpstudy.io``),
+May import: the infrastructure (``kpstudy._checks``, ``_memo``, ``_lazy``, ``io``),
 :mod:`kpstudy.pose`, :mod:`kpstudy.verify` and :mod:`kpstudy.models` (docs/design.md §2).
 """
 
-from kpstudy.certify.allocation_method import (
-    SeedImage,
-    VerificationInstance,
-    build_instance,
-    certify,
-    certify_cells,
-    target_pose_errors,
-)
-from kpstudy.certify.pose_bound_method import (
-    ENUMERATION_CHUNK,
-    MAX_COMBINATIONS,
-    HullPoseBound,
-    argmax_outside,
-    enumerated_pose_error,
-    linearised_bound,
-    pose_bound,
-    region_pixels,
-    single_moves,
-    targeted_witness,
-)
+from kpstudy._lazy import lazy_exports
 
-__all__ = [
-    "ENUMERATION_CHUNK",
-    "MAX_COMBINATIONS",
-    "HullPoseBound",
-    "SeedImage",
-    "VerificationInstance",
-    "argmax_outside",
-    "build_instance",
-    "certify",
-    "certify_cells",
-    "enumerated_pose_error",
-    "linearised_bound",
-    "pose_bound",
-    "region_pixels",
-    "single_moves",
-    "targeted_witness",
-    "target_pose_errors",
-]
+__all__, __getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "allocation_method": (
+            "SeedImage",
+            "VerificationInstance",
+            "build_instance",
+            "certify",
+            "certify_cells",
+            "target_pose_errors",
+        ),
+        "pose_bound_method": (
+            "ENUMERATION_CHUNK",
+            "MAX_COMBINATIONS",
+            "HullPoseBound",
+            "argmax_outside",
+            "enumerated_pose_error",
+            "linearised_bound",
+            "pose_bound",
+            "region_pixels",
+            "single_moves",
+            "targeted_witness",
+        ),
+    },
+)
