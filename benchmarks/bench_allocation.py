@@ -1,8 +1,8 @@
 """Allocation time per image (exact MILP optimum), CNN (64) and ResNet-18 (256) heatmaps.
 
-Ours: :func:`kpstudy.allocation.allocate_tolerances` per image (cached parameterised
+Ours: :func:`kpstudy.pose.allocation.allocate_tolerances` per image (cached parameterised
 one-hot model, Lagrangian bound tightening, cvxpy + HiGHS at zero gap), and per allocation
-of the same grid batched by :func:`kpstudy.allocation.allocate_many` in ``--workers``
+of the same grid batched by :func:`kpstudy.pose.allocation.allocate_many` in ``--workers``
 processes. Baseline: docs/design.md §4.3's textbook model built per call, ``δv_j = Σ_i z_ji``
 with binary increments weighted by ``f(i) − f(i−1)``, same solver, gap and feasibility
 tolerances (with HiGHS's default 1e-7 the textbook model returns points that violate
@@ -19,10 +19,10 @@ import cvxpy as cp
 import numpy as np
 
 from benchmarks.common import HEATMAP_SCALE, emit, scene
-from kpstudy.allocation import _HIGHS_OPTIONS, allocate_many, allocate_tolerances
-from kpstudy.geometry import EPS_R, EPS_T
-from kpstudy.pnp import solve_pnp
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.pose.allocation import _HIGHS_OPTIONS, allocate_many, allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 
 
 def baseline(M, eps_r, eps_t, kappa=1.0, w1=1.0, w2=5.0, max_dv=64) -> float:

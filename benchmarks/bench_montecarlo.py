@@ -15,11 +15,11 @@ import numpy as np
 
 from benchmarks.bench_pnp import cv2_loop_guess
 from benchmarks.common import HEATMAP_SCALE, emit, scene, timed
-from kpstudy.allocation import allocate_many
-from kpstudy.geometry import EPS_R, EPS_T
-from kpstudy.montecarlo import probabilistic_completeness, probabilistic_soundness
-from kpstudy.pnp import solve_pnp
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.pose.allocation import allocate_many
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.montecarlo import probabilistic_completeness, probabilistic_soundness
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 
 
 def main(argv=None):

@@ -2,7 +2,7 @@
 
 Both start from the same initial pose (the nominal pose, as in the Monte Carlo study);
 the baseline is OpenCV's own LM (SOLVEPNP_ITERATIVE with an extrinsic guess), and
-also the global SQPnP + LM refinement that :func:`kpstudy.pnp.solve_pnp` uses.
+also the global SQPnP + LM refinement that :func:`kpstudy.pose.pnp.solve_pnp` uses.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from benchmarks.common import emit, scene, timed
-from kpstudy.pnp import solve_pnp, solve_pnp_batch
+from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
 
 
 def cv2_loop_guess(P, V, K, R, t):

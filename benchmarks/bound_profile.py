@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import emit, study_hulls
-from kpstudy.preprocess import to_model_input
-from kpstudy.train import load_checkpoint
+from kpstudy.models.preprocess import to_model_input
+from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ConvexHull, bound_profile
 
 COLUMNS = ("name", "ratio_median", "unstable_bound", "unstable_sampled")

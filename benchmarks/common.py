@@ -12,7 +12,7 @@ import torch
 
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import airliner_keypoints
-from kpstudy.geometry import project_batch
+from kpstudy.pose.geometry import project_batch
 
 IMAGE_SIZE = (640, 400)
 HEATMAP_SCALE = (64 / 640, 64 / 400)

@@ -3,7 +3,7 @@
 For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m`` and
 overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
 ``bound_profile``), :func:`kpstudy.verify.reachable_argmax` on each backbone's stride-1
-proxy (the argmax head's own pixels, as :func:`kpstudy.pose_bound.pose_bound` builds it)
+proxy (the argmax head's own pixels, as :func:`kpstudy.certify.pose_bound` builds it)
 with ``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
 ``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
 node, what stopped the search, whether the regions are complete (one witnessed pixel per
@@ -20,11 +20,11 @@ import numpy as np
 
 from benchmarks.bound_profile import _checkpoint
 from benchmarks.common import emit, study_hulls
-from kpstudy.data import load_keypoint_set
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.preprocess import scale_factors, to_input_pixels, to_model_input
 from kpstudy.models.proxy import build_proxy
-from kpstudy.pooling import keypoint_pooling
-from kpstudy.preprocess import scale_factors, to_input_pixels, to_model_input
-from kpstudy.train import load_checkpoint
+from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ConvexHull, reachable_argmax
 
 

@@ -35,11 +35,11 @@ import torch
 import torch.nn.functional as F
 
 from benchmarks.common import emit, timed
-from kpstudy.data import load_keypoint_set
 from kpstudy.models import HeatmapCNN, build_proxy
-from kpstudy.pooling import keypoint_pooling
-from kpstudy.preprocess import to_model_input
-from kpstudy.train import load_checkpoint
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.preprocess import to_model_input
+from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
 
 STUDY_KINDS = ("objects", "blocks", "contrast")

@@ -18,7 +18,7 @@ test split:
   ``clip(I ± b)`` / ``clip(I·(1 ± c))``, with the fraction of clipped values recorded
   (clipping is why the hull misses some intermediate images).
 
-Model-input images are :func:`kpstudy.preprocess.resize_to_input` of the render,
+Model-input images are :func:`kpstudy.models.preprocess.resize_to_input` of the render,
 stored as float32 ``.npy`` in [0, 255] (a contrast of 5e-4 would vanish in uint8),
 together with the resized seed image.
 
@@ -40,7 +40,7 @@ from data_gen.occluders import occluder_catalog
 from data_gen.patches import PatchRenderer, paste, patch_light
 from data_gen.scene import SceneParams
 from kpstudy.io import check_output_dir, staged_directory, write_bytes_atomic, write_text_atomic
-from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
+from kpstudy.models.preprocess import resize_to_input, scale_factors, to_input_pixels
 
 KINDS = ("objects", "blocks", "brightness", "contrast")
 DEFAULT_LEVELS = {"brightness": (1.0, 2.0), "contrast": (5e-4, 5e-3, 1e-2)}

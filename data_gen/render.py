@@ -9,7 +9,7 @@ catcher carries its own cast shadow.
 
 Cameras are OpenCV pinhole cameras (``x_c = R p + t``, pixel centres on integers,
 docs/design.md §3); the projection below maps them exactly onto OpenGL's window
-coordinates, so a point projects to the same ``(u, v)`` as :func:`kpstudy.geometry.project`.
+coordinates, so a point projects to the same ``(u, v)`` as :func:`kpstudy.pose.geometry.project`.
 Meshes are trimesh meshes with per-face colours, drawn flat-shaded.
 """
 

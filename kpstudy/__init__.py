@@ -1,13 +1,24 @@
 """kpstudy: certify heatmap-keypoint + PnP pose estimators against convex hulls of images.
 
-Pose-side core (no neural network): :mod:`kpstudy.geometry` (with the tolerance box Ξ),
-:mod:`kpstudy.pnp`, :mod:`kpstudy.sensitivity`, :mod:`kpstudy.allocation`,
-:mod:`kpstudy.montecarlo`. Networks and the verifier: :mod:`kpstudy.preprocess`,
-:mod:`kpstudy.models`, :mod:`kpstudy.pooling` (the proxy's cells, on
-:func:`kpstudy.verify.ops.cell_pool`), :mod:`kpstudy.train`, :mod:`kpstudy.verify`,
-:mod:`kpstudy.certify`, :mod:`kpstudy.pose_bound`. The study:
-:mod:`kpstudy.campaign`, :mod:`kpstudy.tables`, :mod:`kpstudy.report`,
-:mod:`kpstudy.reproduce` and the notebooks. Conventions are those of docs/design.md §3.
+The tree, top-down as the data flows (docs/design.md §2; each part imports only the
+parts its row there names, which tests/test_layout.py checks):
+
+- infrastructure: :mod:`kpstudy._checks` (argument checks), :mod:`kpstudy._memo` (memo
+  keys), :mod:`kpstudy._lazy` (the subpackages' re-exports), :mod:`kpstudy.io` (atomic
+  files, the code fingerprint);
+- :mod:`kpstudy.pose`: pose math, no network — geometry and the tolerance box Ξ, PnP,
+  the sensitivity ``dξ/dv``, the tolerance allocation, its Monte Carlo check;
+- :mod:`kpstudy.verify`: the network-agnostic verifier over convex hulls of images;
+- :mod:`kpstudy.models`: backbones, heads, pooling cells and the proxy; preprocessing,
+  data, training (certified training on :mod:`kpstudy.verify`'s bounds) and evaluation;
+- :mod:`kpstudy.certify`: one seed image's hull → one record, by the paper's allocation
+  method or the pose-bound method (reachable keypoint regions → PnP);
+- :mod:`kpstudy.study`: campaigns, tables, figures, the report, the VNN-COMP export and
+  ``reproduce``'s stages, which the notebooks call;
+- :mod:`kpstudy.cli`: ``python -m kpstudy reproduce|train|evaluate|campaign|export-benchmark``.
+
+Each subpackage re-exports its public names (``from kpstudy.certify import certify``).
+Conventions are those of docs/design.md §3.
 """
 
 __version__ = "0.1.0"

@@ -1,5 +1,5 @@
 """Small content-keyed caches of one process: a campaign's hulls of one seed image ask for
-the same pose sensitivity and allocations (:mod:`kpstudy.certify`)."""
+the same pose sensitivity and allocations (:mod:`kpstudy.certify.allocation_method`)."""
 
 from __future__ import annotations
 

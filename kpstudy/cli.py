@@ -54,8 +54,8 @@ def main(argv=None) -> int:
         help="train the verification-friendly CNN from scratch (default: the shipped one)",
     )
 
-    from kpstudy.campaign import add_arguments
-    from kpstudy.train import CERTIFIED_WEIGHT, TrainConfig
+    from kpstudy.models.training import CERTIFIED_WEIGHT, TrainConfig
+    from kpstudy.study.campaign import add_arguments
 
     default = TrainConfig()
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
     try:
         if args.command == "reproduce":
             from kpstudy.io import check_writable
-            from kpstudy.reproduce import STAGES, profile, reproduce
+            from kpstudy.study.reproduction import STAGES, profile, reproduce
 
             prof = profile(
                 args.profile,
@@ -228,7 +228,7 @@ def _train(args) -> None:
     import torch
 
     from kpstudy.io import check_output_file
-    from kpstudy.train import (
+    from kpstudy.models.training import (
         CERTIFIED_WEIGHT,
         TrainConfig,
         check_device,
@@ -259,8 +259,8 @@ def _train(args) -> None:
 def _evaluate(args) -> None:
     import pandas as pd
 
-    from kpstudy.evaluate import evaluate
     from kpstudy.io import check_writable, write_table, write_text_atomic
+    from kpstudy.models.evaluation import evaluate
 
     if args.out:  # OUT.csv, OUT.md and OUT_images.csv go beside each other
         check_writable(Path(args.out).parent, "out")
@@ -280,8 +280,8 @@ def _campaign(args) -> None:
     import pandas as pd
     from tqdm.auto import tqdm
 
-    from kpstudy.campaign import Settings, grid, run_campaign
     from kpstudy.io import check_output_file, write_table
+    from kpstudy.study.campaign import Settings, grid, run_campaign
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
         check_output_file(Path(f"{args.out}.csv"), "out")
@@ -326,8 +326,8 @@ def _export_benchmark(args, argv) -> None:
     written."""
     import shlex
 
-    from kpstudy.campaign import grid
-    from kpstudy.export_benchmark import export_benchmark
+    from kpstudy.study.campaign import grid
+    from kpstudy.study.vnncomp import export_benchmark
 
     if not Path(args.checkpoint).is_file():
         raise FileNotFoundError(f"checkpoint: no file at {args.checkpoint}")

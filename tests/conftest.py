@@ -5,7 +5,7 @@ import pytest
 
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import airliner_keypoints
-from kpstudy.geometry import project_batch
+from kpstudy.pose.geometry import project_batch
 
 IMAGE_SIZE = (640, 400)  # width, height (the paper's 1920×1200 aspect)
 HEATMAP_SCALE = (64 / 640, 64 / 400)  # image → 64×64 CNN heatmap

@@ -1,4 +1,4 @@
-"""Tests for kpstudy.allocation: exact integer tolerance allocation."""
+"""Tests for kpstudy.pose.allocation: exact integer tolerance allocation."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
-from kpstudy import allocation
-from kpstudy.allocation import Allocation, allocate_tolerances
+from kpstudy.pose import allocation
+from kpstudy.pose.allocation import Allocation, allocate_tolerances
 
 EPS_R = np.array([10.0, 10.0, 10.0])  # degrees
 EPS_T = np.array([4.0, 4.0, 20.0])  # metres

@@ -8,7 +8,8 @@ from matplotlib.figure import Figure
 
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import airliner_keypoints
-from kpstudy.allocation_figures import (
+from kpstudy.pose.geometry import project_batch
+from kpstudy.study.allocation_figures import (
     FRAME_COLUMNS,
     allocation_errorbars,
     allocation_frame,
@@ -17,7 +18,6 @@ from kpstudy.allocation_figures import (
     plot_allocation,
     plot_keypoint_samples,
 )
-from kpstudy.geometry import project_batch
 
 IMAGE_SIZE = (640, 400)
 HEATMAP = 64

@@ -1,4 +1,5 @@
-"""kpstudy.certify and kpstudy.campaign on a rendered tiny dataset and a tiny trained CNN."""
+"""kpstudy.certify.allocation_method and kpstudy.study.campaign on a rendered tiny dataset and a
+tiny trained CNN."""
 
 import shutil
 
@@ -7,8 +8,15 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.allocation import allocate_tolerances
-from kpstudy.campaign import (
+from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
+from kpstudy.certify.pose_bound_method import argmax_outside
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.preprocess import scale_factors
+from kpstudy.models.training import TrainConfig, load_checkpoint, train
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.sensitivity import pose_sensitivity
+from kpstudy.study.campaign import (
     Instance,
     ResultStore,
     Settings,
@@ -18,13 +26,6 @@ from kpstudy.campaign import (
     run_study,
     store_path,
 )
-from kpstudy.certify import SeedImage, build_instance, certify
-from kpstudy.data import load_keypoint_set
-from kpstudy.geometry import EPS_R, EPS_T
-from kpstudy.pose_bound import argmax_outside
-from kpstudy.preprocess import scale_factors
-from kpstudy.sensitivity import pose_sensitivity
-from kpstudy.train import TrainConfig, load_checkpoint, train
 
 
 @pytest.fixture(scope="module")
@@ -298,7 +299,7 @@ def test_store_paths_separate_models_and_settings(study, tmp_path, monkeypatch):
     state["epoch"] += 1
     torch.save(state, other)
     assert path != store_path(tmp_path, "objects", Settings(str(other), str(data), timeout=5))
-    monkeypatch.setattr("kpstudy.campaign.source_fingerprint", lambda: "other code")
+    monkeypatch.setattr("kpstudy.study.campaign.source_fingerprint", lambda: "other code")
     assert path != store_path(tmp_path, "objects", settings)
 
 
@@ -306,7 +307,7 @@ def test_the_command_line_offers_every_setting_with_its_default():
     import argparse
     from dataclasses import fields
 
-    from kpstudy.campaign import add_arguments
+    from kpstudy.study.campaign import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -19,10 +19,10 @@ import pytest
 import torch
 
 from data_gen.perturb import make_perturbations
-from kpstudy import tables
-from kpstudy.campaign import ResultStore, Settings, grid, run_campaign
 from kpstudy.cli import main
-from kpstudy.train import TrainConfig, train
+from kpstudy.models.training import TrainConfig, train
+from kpstudy.study import tables
+from kpstudy.study.campaign import ResultStore, Settings, grid, run_campaign
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD_IMAGE = 18  # the tiny dataset's second test image

@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch import nn
 
-from kpstudy.certified import (
+from kpstudy.models import build_backbone
+from kpstudy.models.certified import (
     MAX_COPIES,
     BatchStatistics,
     HullSampler,
@@ -17,8 +18,7 @@ from kpstudy.certified import (
     occluder_patches,
     robust_heatmap_loss,
 )
-from kpstudy.models import build_backbone
-from kpstudy.train import TrainConfig, config_of, heatmap_loss, load_checkpoint, train
+from kpstudy.models.training import TrainConfig, config_of, heatmap_loss, load_checkpoint, train
 from kpstudy.verify import Box, ConvexHull, output_bounds
 from kpstudy.verify.bounds import Region, propagate
 from kpstudy.verify.graph import trace
@@ -202,9 +202,9 @@ def test_bad_certified_config_is_named():
 
 
 def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_path):
-    from kpstudy.certify import SeedImage, certify
-    from kpstudy.data import load_keypoint_set
-    from kpstudy.evaluate import evaluate
+    from kpstudy.certify.allocation_method import SeedImage, certify
+    from kpstudy.models.data import load_keypoint_set
+    from kpstudy.models.evaluation import evaluate
 
     config = TrainConfig(
         "cnn_affine",
@@ -236,7 +236,7 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
 
 
 def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
-    from kpstudy.train import _backward
+    from kpstudy.models.training import _backward
 
     w = torch.tensor([1.0, 2.0], requires_grad=True)
     natural = (w**2).sum()  # gradient (2, 4)
@@ -252,7 +252,7 @@ def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     import json
 
-    from kpstudy.reproduce import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
+    from kpstudy.study.reproduction import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
 
     backbone, state = load_checkpoint(SHIPPED)
     card = json.loads(SHIPPED.with_suffix(".json").read_text())
@@ -272,7 +272,7 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
 def test_ship_friendly_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):
     import json
 
-    from kpstudy.reproduce import ship_friendly
+    from kpstudy.study.reproduction import ship_friendly
 
     config = TrainConfig("cnn_affine", epochs=1, batch_size=4, images=4, seed=2)
     path = tmp_path / "trained.pt"

@@ -58,7 +58,7 @@ def read_only(tmp_path):
 
 @pytest.fixture(scope="module")
 def checkpoint(tiny_dataset, tmp_path_factory):
-    from kpstudy.train import TrainConfig, train
+    from kpstudy.models.training import TrainConfig, train
 
     path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
     train(tiny_dataset, path, TrainConfig(epochs=1, batch_size=4, images=8, seed=1), progress=False)
@@ -225,7 +225,7 @@ def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
     import nbformat
     import papermill
 
-    from kpstudy.reproduce import _ipc_kernel
+    from kpstudy.study.reproduction import _ipc_kernel
 
     notebook = nbformat.v4.new_notebook()
     notebook.cells = [nbformat.v4.new_code_cell("x = 1"), nbformat.v4.new_code_cell("x * 2")]

@@ -1,4 +1,4 @@
-"""kpstudy.comparison: every method's rate and time beside the paper's, from stored tables."""
+"""kpstudy.study.comparison: every method's rate and time beside the paper's, from stored tables."""
 
 import io
 import itertools
@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 from matplotlib.figure import Figure
 
-from kpstudy import comparison, tables
+from kpstudy.study import comparison, tables
 
 
 def local_records(pose_bound: bool = True) -> pd.DataFrame:

@@ -3,7 +3,7 @@ import pytest
 
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import AIRLINER_KEYPOINTS, KEYPOINT_NAMES, airliner_keypoints
-from kpstudy.geometry import euler_from_matrix, project_batch
+from kpstudy.pose.geometry import euler_from_matrix, project_batch
 
 
 def test_keypoints_are_23_named_points_of_an_airliner():

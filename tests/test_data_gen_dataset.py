@@ -12,7 +12,7 @@ from pycocotools.coco import COCO
 from data_gen import dataset as dataset_module
 from data_gen.dataset import generate_dataset, load_coco, parse_size, read_image, split_of
 from data_gen.keypoints import KEYPOINT_NAMES
-from kpstudy.geometry import project
+from kpstudy.pose.geometry import project
 
 SIZE = "240x150"
 

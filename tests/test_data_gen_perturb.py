@@ -15,7 +15,7 @@ from data_gen.perturb import (
     load_perturbations,
     make_perturbations,
 )
-from kpstudy.preprocess import resize_to_input
+from kpstudy.models.preprocess import resize_to_input
 
 
 @pytest.fixture(scope="module")

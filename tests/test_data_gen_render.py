@@ -8,7 +8,7 @@ from matplotlib.path import Path as PolygonPath
 from data_gen.camera import intrinsics
 from data_gen.patches import PatchRenderer, paste, patch_light
 from data_gen.render import Camera, Item, Light, Renderer, look_at
-from kpstudy.geometry import project
+from kpstudy.pose.geometry import project
 
 
 @pytest.fixture(scope="module")

@@ -14,10 +14,10 @@ import torch
 
 from data_gen.perturb import hull_vertices
 from kpstudy import __version__
-from kpstudy.campaign import _context, grid
-from kpstudy.certify import build_instance
+from kpstudy.certify.allocation_method import build_instance
 from kpstudy.cli import main
-from kpstudy.export_benchmark import instance_name
+from kpstudy.study.campaign import _context, grid
+from kpstudy.study.vnncomp import instance_name
 from kpstudy.verify.export import read_vnnlib_polytope
 from kpstudy.verify.simplex_map import box_of_lambda
 from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
@@ -109,7 +109,7 @@ def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
 
 def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
     """certify's record comes from build_instance's proxy, hull and spec."""
-    from kpstudy.certify import certify
+    from kpstudy.certify.allocation_method import certify
     from kpstudy.verify import verify
 
     data, checkpoint = study
@@ -221,12 +221,12 @@ def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # 
 def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatch):  # noqa: F811
     """A seed build_instance refuses is listed in README.md; a grid of only such seeds is
     refused, naming ``instances``, with nothing left behind."""
-    import kpstudy.certify
-    from kpstudy.export_benchmark import export_benchmark
+    import kpstudy.certify.allocation_method
+    from kpstudy.study.vnncomp import export_benchmark
 
     data, checkpoint = study
     instances = grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)
-    real = kpstudy.certify.build_instance
+    real = kpstudy.certify.allocation_method.build_instance
 
     def refuse_overlapping(backbone, vertices, seed, **kw):
         if (
@@ -236,7 +236,7 @@ def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatc
             raise ValueError("seed: keypoint 3 lies outside the heatmap (test)")
         return real(backbone, vertices, seed, **kw)
 
-    monkeypatch.setattr(kpstudy.certify, "build_instance", refuse_overlapping)
+    monkeypatch.setattr(kpstudy.certify.allocation_method, "build_instance", refuse_overlapping)
     done = export_benchmark(checkpoint, data, tmp_path / "some", instances)
     ((name, reason),) = done["skipped"]
     assert name.endswith("_ov_a1_k1") and done["written"] == [instance_name(instances[0])]
@@ -247,7 +247,7 @@ def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatc
     def refuse(*args, **kw):
         raise ValueError("seed: PnP gives no valid pose (test)")
 
-    monkeypatch.setattr(kpstudy.certify, "build_instance", refuse)
+    monkeypatch.setattr(kpstudy.certify.allocation_method, "build_instance", refuse)
     with pytest.raises(ValueError, match="^instances: no seed image"):
         export_benchmark(checkpoint, data, tmp_path / "none", instances)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["some"]

@@ -4,7 +4,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from kpstudy.geometry import (
+from kpstudy.pose.geometry import (
     euler_from_matrix,
     euler_from_matrix_torch,
     matrix_from_euler,

@@ -7,7 +7,12 @@ import pytest
 import scipy.stats
 import torch
 
-from kpstudy.heatmaps import COLUMNS, marginal_indicators, plot_indicators, symmetry_indicators
+from kpstudy.study.heatmaps import (
+    COLUMNS,
+    marginal_indicators,
+    plot_indicators,
+    symmetry_indicators,
+)
 
 H, W = 48, 64
 
@@ -287,7 +292,7 @@ def test_plot_indicators():
 
 
 def test_summary_columns_say_they_are_magnitudes():
-    from kpstudy.heatmaps import summarise_indicators
+    from kpstudy.study.heatmaps import summarise_indicators
 
     right = symmetry_indicators(separable_logits(lognormal_logits(W), lognormal_logits(H))[None])
     left = symmetry_indicators(

@@ -25,7 +25,7 @@ import pytest
 import torch
 from torch import nn
 
-from kpstudy.pooling import build_cell_pool
+from kpstudy.models.pooling import build_cell_pool
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.export import export_instance, point_of_input
 from kpstudy.verify.spec import ArgmaxSpec
@@ -54,7 +54,7 @@ MARABOU_SECONDS = 30
 
 class TinyProxy(nn.Module):
     """Conv(1→3) → ReLU → Conv(3→2): two 6×6 heatmaps; each pooled into its keypoint's
-    cells (:func:`kpstudy.pooling.build_cell_pool`) by one linear layer, whose bias raises
+    cells (:func:`kpstudy.models.pooling.build_cell_pool`) by one linear layer, whose bias raises
     each target cell so that the seed image ``x0`` has margin ``seed_margin`` in every
     group. Input ``(B, 1, 6, 6)``, output ``(B, 9 + 15)``."""
 
@@ -181,8 +181,8 @@ def test_marabou_reads_the_box_form(tmp_path):
     "KeypointProxy (channel slices, padded average pooling) cannot be read",
 )
 def test_marabou_reads_the_keypoint_proxy(tmp_path):
+    from kpstudy.models.pooling import keypoint_pooling
     from kpstudy.models.proxy import build_proxy
-    from kpstudy.pooling import keypoint_pooling
 
     torch.manual_seed(0)
     backbone = nn.Sequential(nn.Conv2d(1, 2, 3, padding=1), nn.ReLU(), nn.Conv2d(2, 2, 1))

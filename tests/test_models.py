@@ -15,7 +15,7 @@ from kpstudy.models import (
     build_proxy,
     dsnt_keypoints,
 )
-from kpstudy.pooling import keypoint_pooling
+from kpstudy.models.pooling import keypoint_pooling
 from kpstudy.verify import export_onnx
 from kpstudy.verify.graph import trace
 
@@ -125,7 +125,7 @@ def test_partial_border_cells_are_where_proxy_and_argmax_part():
     - logits: a 4-pixel target cell [0, 3] keeps winning when the peak has moved to 4,
       outside it (the mean of −d²/2 over d = 1..4 beats that over d = 0..6).
     A proxy certificate speaks of cell averages; near the heatmap border it does not bound
-    the heatmap's argmax (kpstudy.certify checks the target model end to end)."""
+    the heatmap's argmax (kpstudy.certify.allocation_method checks the target model end to end)."""
     proxy = build_proxy(
         nn.Identity(),
         keypoint_pooling([(40, 5)], [(1, 4)], (64, 64)),

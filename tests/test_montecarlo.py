@@ -1,17 +1,17 @@
 import numpy as np
 import pytest
 
-from kpstudy.allocation import allocate_tolerances
-from kpstudy.geometry import EPS_R, EPS_T, euler_from_matrix, project, wrap_degrees
-from kpstudy.montecarlo import (
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T, euler_from_matrix, project, wrap_degrees
+from kpstudy.pose.montecarlo import (
     SOUNDNESS_TOL_PX,
     _rng,
     probabilistic_completeness,
     probabilistic_soundness,
     soundness_completeness_table,
 )
-from kpstudy.pnp import solve_pnp
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 from tests.conftest import HEATMAP_SCALE, views
 
 
@@ -148,7 +148,7 @@ def test_completeness_matches_direct_projection(P, K, study):
         e0 = euler_from_matrix(R[i])
         inside = []
         for d in dxi:
-            from kpstudy.geometry import matrix_from_euler
+            from kpstudy.pose.geometry import matrix_from_euler
 
             Vs = project(P, matrix_from_euler(e0 + d[:3]), t[i] + d[3:], K)
             inside.append(np.all(np.abs(Vs - V[i]) <= dv[i]))

@@ -13,10 +13,10 @@ import sys
 import pytest
 import torch
 
-from kpstudy import train as train_module
-from kpstudy.data import load_keypoint_set
-from kpstudy.evaluate import evaluate
-from kpstudy.train import TrainConfig, TrainingDiverged, load_checkpoint, train
+from kpstudy.models import training as train_module
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.evaluation import evaluate
+from kpstudy.models.training import TrainConfig, TrainingDiverged, load_checkpoint, train
 
 TINY = TrainConfig(epochs=2, batch_size=4, images=8, seed=1)  # 2 steps per epoch
 

@@ -12,7 +12,7 @@ def test_a_notebook_kernels_own_stderr_goes_to_its_log_file(tmp_path):
     script = f"""
 from pathlib import Path
 import nbformat, papermill
-from kpstudy.reproduce import _ipc_kernel, kernel_manager
+from kpstudy.study.reproduction import _ipc_kernel, kernel_manager
 nb = nbformat.v4.new_notebook()
 nb.cells = [nbformat.v4.new_code_cell(
     "get_ipython().kernel.log.error('kernel-side noise 7d1f'); print('cell output 7d1f')"

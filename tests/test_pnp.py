@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from kpstudy.geometry import project, project_batch
-from kpstudy.pnp import _CV_CRITERIA, solve_pnp, solve_pnp_batch
+from kpstudy.pose.geometry import project, project_batch
+from kpstudy.pose.pnp import _CV_CRITERIA, solve_pnp, solve_pnp_batch
 from tests.conftest import views
 
 

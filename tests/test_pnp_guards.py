@@ -1,4 +1,4 @@
-"""kpstudy.pnp's guards (issue 29, point 4): argument checks, and poses that PnP flags as not
+"""kpstudy.pose.pnp's guards (issue 29, point 4): argument checks, and poses that PnP flags as not
 valid (a point behind the camera, a run-away residual, collinear keypoints), which no
 caller counts as inside Ξ."""
 
@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from kpstudy import montecarlo, pose_bound
-from kpstudy.evaluate import pose_errors
-from kpstudy.geometry import EPS_R, EPS_T, project_batch
-from kpstudy.montecarlo import probabilistic_soundness, soundness_completeness_table
-from kpstudy.pnp import PnPResult, solve_pnp, solve_pnp_batch
+from kpstudy.certify import pose_bound_method
+from kpstudy.models.evaluation import pose_errors
+from kpstudy.pose import montecarlo
+from kpstudy.pose.geometry import EPS_R, EPS_T, project_batch
+from kpstudy.pose.montecarlo import probabilistic_soundness, soundness_completeness_table
+from kpstudy.pose.pnp import PnPResult, solve_pnp, solve_pnp_batch
 from tests.conftest import views
 
 
@@ -170,15 +171,15 @@ def test_montecarlo_refuses_an_invalid_nominal_pose(P, K, monkeypatch):
 
 
 def test_pose_bound_and_evaluate_give_flagged_poses_an_infinite_error(P, K, monkeypatch):
-    from kpstudy import evaluate as evaluate_module
-    from kpstudy.certify import SeedImage
+    from kpstudy.certify.allocation_method import SeedImage
+    from kpstudy.models import evaluation as evaluate_module
 
     R, t, V = views(3, 25, K, P)
     seed = SeedImage(0, V[0], K, P, (640, 400))
-    monkeypatch.setattr(pose_bound, "solve_pnp_batch", _flagged(False))
-    assert np.isinf(pose_bound._pose_errors(seed, V, R[0], t[0])).all()
-    monkeypatch.setattr(pose_bound, "solve_pnp_batch", _flagged(True))
-    assert np.all(pose_bound._pose_errors(seed, V[:1], R[0], t[0]) == 0)
+    monkeypatch.setattr(pose_bound_method, "solve_pnp_batch", _flagged(False))
+    assert np.isinf(pose_bound_method._pose_errors(seed, V, R[0], t[0])).all()
+    monkeypatch.setattr(pose_bound_method, "solve_pnp_batch", _flagged(True))
+    assert np.all(pose_bound_method._pose_errors(seed, V[:1], R[0], t[0]) == 0)
 
     def flagged_single(P_, V_, K_, init=None, **kw):
         return PnPResult(R[0], t[0], False, 0.0, 1.0)
@@ -188,8 +189,8 @@ def test_pose_bound_and_evaluate_give_flagged_poses_an_infinite_error(P, K, monk
 
 
 def test_certify_refuses_a_seed_without_a_valid_nominal_pose(P, K, monkeypatch):
-    from kpstudy import certify as certify_module
-    from kpstudy.certify import SeedImage, certify
+    from kpstudy.certify import allocation_method as certify_module
+    from kpstudy.certify.allocation_method import SeedImage, certify
 
     R, t, V = views(1, 26, K, P)
     monkeypatch.setattr(

@@ -1,4 +1,4 @@
-"""Tests of kpstudy.pooling: cell geometry, the pooling op, and the keypoint class."""
+"""Tests of kpstudy.models.pooling: cell geometry, the pooling op, and the keypoint class."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kpstudy import pooling
-from kpstudy.pooling import (
+from kpstudy.models import pooling
+from kpstudy.models.pooling import (
     CellAvgPool2d,
     PoolParams,
     build_cell_pool,

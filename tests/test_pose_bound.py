@@ -1,4 +1,5 @@
-"""kpstudy.pose_bound: the linearised pose bound over keypoint regions, and certify's record."""
+"""kpstudy.certify.pose_bound_method: the linearised pose bound over keypoint regions, and
+certify's record."""
 
 import itertools
 
@@ -7,13 +8,13 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices
-from kpstudy.allocation import allocate_tolerances
-from kpstudy.certify import certify, target_pose_errors
-from kpstudy.geometry import EPS_R, EPS_T
-from kpstudy.pnp import solve_pnp
-from kpstudy.pose_bound import linearised_bound
-from kpstudy.preprocess import to_model_input
-from kpstudy.train import load_checkpoint
+from kpstudy.certify.allocation_method import certify, target_pose_errors
+from kpstudy.certify.pose_bound_method import linearised_bound
+from kpstudy.models.preprocess import to_model_input
+from kpstudy.models.training import load_checkpoint
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import EPS_R, EPS_T
+from kpstudy.pose.pnp import solve_pnp
 from kpstudy.verify import ConvexHull
 from tests.test_campaign import _seed, study  # noqa: F401  (the module fixture)
 

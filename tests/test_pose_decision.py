@@ -1,6 +1,6 @@
-"""kpstudy.pose_bound's exact decision (issue 27, part 2): PnP over every combination of
-region pixels decides where there are few enough, the linearised bound only above that, and
-the tables count which rule decided."""
+"""kpstudy.certify.pose_bound_method's exact decision (issue 27, part 2): PnP over every
+combination of region pixels decides where there are few enough, the linearised bound only
+above that, and the tables count which rule decided."""
 
 import io
 import itertools
@@ -12,12 +12,12 @@ import pytest
 import torch
 from torch import nn
 
-from kpstudy import pose_bound as pb
-from kpstudy import tables
-from kpstudy.certify import SeedImage
-from kpstudy.geometry import euler_from_matrix, wrap_degrees
-from kpstudy.pnp import solve_pnp, solve_pnp_batch
-from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
+from kpstudy.certify import pose_bound_method as pb
+from kpstudy.certify.allocation_method import SeedImage
+from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
+from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
+from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
+from kpstudy.study import tables
 from kpstudy.verify import ConvexHull
 from tests.conftest import IMAGE_SIZE, views
 
@@ -463,7 +463,7 @@ def test_the_tables_count_the_searches_the_time_cap_ended():
     for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
         row = tables.t_global(frame).iloc[0]
         assert (row.capped, row.pb_capped) == (2, 1)
-    from kpstudy.report import campaign_summary
+    from kpstudy.study.report import campaign_summary
 
     line = campaign_summary(tables.t_global(records))[-1]
     assert "2 of the allocation method's and 1 of the pose-bound method's" in line

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from data_gen.perturb import make_perturbations
-from kpstudy.train import TrainConfig, train
+from kpstudy.models.training import TrainConfig, train
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

@@ -1,11 +1,12 @@
-"""kpstudy.report and kpstudy.trends: REPORT.md from stored tables, old ones included."""
+"""kpstudy.study.report and kpstudy.study.trends: REPORT.md from stored tables, old ones
+included."""
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from kpstudy import comparison, report, tables, trends
 from kpstudy.io import save_figure, write_table
+from kpstudy.study import comparison, report, tables, trends
 from tests.test_comparison import local_records
 
 

@@ -8,9 +8,9 @@ from dataclasses import replace
 import pandas as pd
 import pytest
 
-from kpstudy.report import SECTIONS
-from kpstudy.reproduce import NOTEBOOKS, PROFILES, profile, reproduce
-from kpstudy.tables import PAPER_T_PROB
+from kpstudy.study.report import SECTIONS
+from kpstudy.study.reproduction import NOTEBOOKS, PROFILES, profile, reproduce
+from kpstudy.study.tables import PAPER_T_PROB
 
 TINY = replace(
     PROFILES["quick"],
@@ -155,7 +155,7 @@ def test_bad_profiles_are_refused_before_any_work(overrides, message):
 
 
 def test_a_code_change_makes_every_notebook_stale(monkeypatch):
-    from kpstudy import reproduce as module
+    from kpstudy.study import reproduction as module
 
     source = NOTEBOOKS / "05_probabilistic.ipynb"
     before = module._signature(source, {"images": 2})

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from kpstudy.geometry import euler_from_matrix
-from kpstudy.pnp import solve_pnp, solve_pnp_batch
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.pose.geometry import euler_from_matrix
+from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
+from kpstudy.pose.sensitivity import pose_sensitivity
 from tests.conftest import HEATMAP_SCALE, views
 
 

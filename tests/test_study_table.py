@@ -1,8 +1,8 @@
-"""kpstudy.study_table: one verification table from its campaigns, files and figures."""
+"""kpstudy.study.table_runs: one verification table from its campaigns, files and figures."""
 
 import pytest
 
-from kpstudy.study_table import TABLES, run_table
+from kpstudy.study.table_runs import TABLES, run_table
 from tests.test_campaign import study  # noqa: F401  (the module fixture)
 
 

@@ -1,11 +1,11 @@
-"""kpstudy.tables on campaign records, as stored and as read back from CSV."""
+"""kpstudy.study.tables on campaign records, as stored and as read back from CSV."""
 
 import io
 
 import numpy as np
 import pandas as pd
 
-from kpstudy import tables
+from kpstudy.study import tables
 
 
 def _records():

@@ -1,4 +1,4 @@
-"""kpstudy.tables: every summary column against counts made by hand on small record frames,
+"""kpstudy.study.tables: every summary column against counts made by hand on small record frames,
 as stored and as read back from CSV."""
 
 import io
@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kpstudy import tables
+from kpstudy.study import tables
 
 
 def _record(status, inside, **fields):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from kpstudy import train as train_module
-from kpstudy.data import load_keypoint_set
-from kpstudy.evaluate import evaluate, inside, pose_errors
-from kpstudy.preprocess import resize_to_input, scale_factors, to_input_pixels
-from kpstudy.train import (
+from kpstudy.models import training as train_module
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.evaluation import evaluate, inside, pose_errors
+from kpstudy.models.preprocess import resize_to_input, scale_factors, to_input_pixels
+from kpstudy.models.training import (
     TrainConfig,
     heatmap_loss,
     heatmap_targets,
@@ -226,7 +226,7 @@ def test_cli_bad_input_exits_2_and_writes_nothing(tiny_dataset, tmp_path, args, 
 
 
 def test_a_fine_tuning_stage_starts_from_its_initial_checkpoint(checkpoint, tiny_dataset, tmp_path):
-    from kpstudy.train import weights_digest
+    from kpstudy.models.training import weights_digest
 
     _, base = load_checkpoint(checkpoint)
     digest = weights_digest(base["model"])

@@ -10,7 +10,7 @@ import torch
 from onnx.reference import ReferenceEvaluator
 from torch import nn
 
-from kpstudy.pooling import build_cell_pool
+from kpstudy.models.pooling import build_cell_pool
 from kpstudy.verify.export import export_instance, point_of_input, read_vnnlib_polytope
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.simplex_map import box_of_lambda

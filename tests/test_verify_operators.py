@@ -125,10 +125,10 @@ def test_the_cell_pool_is_traced_as_one_function_node():
 
 
 def test_the_verifier_does_not_import_the_pooling_layer():
-    """kpstudy.pooling uses the verifier's functional cell pool, not the other way round."""
+    """kpstudy.models.pooling uses the verifier's functional cell pool, not the other way round."""
     for path in Path(operators.__file__).parent.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):
-                assert node.module != "kpstudy.pooling", path.name
+                assert node.module != "kpstudy.models.pooling", path.name
             elif isinstance(node, ast.Import):
-                assert all(a.name != "kpstudy.pooling" for a in node.names), path.name
+                assert all(a.name != "kpstudy.models.pooling" for a in node.names), path.name

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from kpstudy.pooling import build_cell_pool
+from kpstudy.models.pooling import build_cell_pool
 
 
 class MixedNet(nn.Module):

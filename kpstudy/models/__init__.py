@@ -1,66 +1,98 @@
-"""Keypoint networks: backbones that output unnormalised heatmaps, the target heads
-(softmax → DSNT or argmax) and the proxy head that turns the heatmaps into a verifiable
-per-keypoint classification (docs/design.md §4.5).
+"""Keypoint networks and what makes, feeds, trains and evaluates them.
+
+The networks: backbones that output unnormalised heatmaps (:mod:`~kpstudy.models.cnn`,
+:mod:`~kpstudy.models.resnet`, by name in :mod:`~kpstudy.models.backbones`), the target
+heads (softmax → DSNT or argmax, :mod:`~kpstudy.models.heads`) and the proxy head that
+turns the heatmaps into a verifiable per-keypoint classification
+(:mod:`~kpstudy.models.proxy`, on the pooling cells of :mod:`~kpstudy.models.pooling`;
+docs/design.md §4.4–4.5). Around them: :mod:`~kpstudy.models.preprocess` (F0: resize to
+the model input, pixel maps), :mod:`~kpstudy.models.data` (a dataset split as network
+inputs), :mod:`~kpstudy.models.training` (``python -m kpstudy train``, checkpoints),
+:mod:`~kpstudy.models.certified` (the verifier's bound term of verification-friendly
+training, §4.5b) and :mod:`~kpstudy.models.evaluation` (``python -m kpstudy evaluate``:
+PCK, the pose through PnP, the fraction in Ξ).
 
 Every backbone has class attributes ``input_size`` (square input side, pixels) and
 ``heatmap_size`` (square heatmap side, pixels) and uses only the operators the verifier
 bounds (:mod:`kpstudy.verify.graph`).
+
+May import: the infrastructure (``kpstudy._checks``, ``_memo``, ``_lazy``, ``io``),
+:mod:`kpstudy.pose` and :mod:`kpstudy.verify` (docs/design.md §2).
 """
 
-from torch import nn
+from kpstudy._lazy import lazy_exports
 
-from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder
-from kpstudy.models.heads import (
-    TargetModel,
-    argmax_keypoints,
-    dsnt_keypoints,
-    softmax_heatmaps,
+__all__, __getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "backbones": (
+            "BACKBONES",
+            "build_backbone",
+        ),
+        "certified": (
+            "BOUND_METHODS",
+            "BatchStatistics",
+            "HullSampler",
+            "bound_graph",
+            "hull_bounds",
+            "occluder_patches",
+            "robust_heatmap_loss",
+        ),
+        "cnn": (
+            "HeatmapCNN",
+            "HeatmapCNNAffineDecoder",
+        ),
+        "data": (
+            "SPLITS",
+            "KeypointSet",
+            "load_keypoint_set",
+        ),
+        "evaluation": (
+            "evaluate",
+            "pose_errors",
+        ),
+        "heads": (
+            "TargetModel",
+            "argmax_keypoints",
+            "dsnt_keypoints",
+            "softmax_heatmaps",
+        ),
+        "pooling": (
+            "CellAvgPool2d",
+            "PoolParams",
+            "build_cell_pool",
+            "cell_bounds",
+            "cell_index",
+            "keypoint_pooling",
+            "num_cells",
+            "pooling_params",
+        ),
+        "preprocess": (
+            "resize_to_input",
+            "scale_factors",
+            "to_image_pixels",
+            "to_input_pixels",
+            "to_model_input",
+        ),
+        "proxy": (
+            "KeypointProxy",
+            "build_proxy",
+        ),
+        "resnet": ("HeatmapResNet18",),
+        "training": (
+            "CERTIFIED_WEIGHT",
+            "TrainConfig",
+            "TrainingDiverged",
+            "check_device",
+            "config_of",
+            "heatmap_loss",
+            "heatmap_targets",
+            "load_checkpoint",
+            "pck",
+            "plot_history",
+            "predict",
+            "train",
+            "weights_digest",
+        ),
+    },
 )
-from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.models.resnet import HeatmapResNet18
-
-BACKBONES = {
-    "cnn": HeatmapCNN,
-    "cnn_affine": HeatmapCNNAffineDecoder,
-    "resnet18": HeatmapResNet18,
-}
-
-
-def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
-    """A freshly initialised heatmap backbone.
-
-    Parameters
-    ----------
-    name : {'cnn', 'cnn_affine', 'resnet18'}
-        ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'cnn_affine'``: the same
-        with an affine decoder (no ReLU after the transposed convolutions, the
-        verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps, ~1.25e7
-        parameters.
-    num_keypoints : int
-        Heatmap channels.
-
-    Examples
-    --------
-    >>> build_backbone("cnn").input_size
-    64
-    """
-    if name not in BACKBONES:
-        raise ValueError(f"name: expected one of {sorted(BACKBONES)}, got {name!r}")
-    if isinstance(num_keypoints, bool) or not isinstance(num_keypoints, int) or num_keypoints < 1:
-        raise ValueError(f"num_keypoints: expected a positive integer, got {num_keypoints!r}")
-    return BACKBONES[name](num_keypoints)
-
-
-__all__ = [
-    "BACKBONES",
-    "HeatmapCNN",
-    "HeatmapCNNAffineDecoder",
-    "HeatmapResNet18",
-    "KeypointProxy",
-    "TargetModel",
-    "argmax_keypoints",
-    "build_backbone",
-    "build_proxy",
-    "dsnt_keypoints",
-    "softmax_heatmaps",
-]

@@ -1,6 +1,6 @@
 """The proxy model: backbone → per-keypoint cell pooling → flatten → concatenation.
 
-Softmax + DSNT/argmax heads are replaced by one :class:`~kpstudy.pooling.CellAvgPool2d`
+Softmax + DSNT/argmax heads are replaced by one :class:`~kpstudy.models.pooling.CellAvgPool2d`
 per heatmap channel, built around the keypoint's nominal heatmap pixel with its allocated
 tolerance, so that "the keypoint's cell wins" is a linear classification spec
 (paper §5.2 and §6.3, docs/design.md §4.4–4.6).
@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from kpstudy.pooling import CellAvgPool2d, cell_index
+from kpstudy.models.pooling import CellAvgPool2d, cell_index
 from kpstudy.verify.spec import ArgmaxSpec
 
 
@@ -70,7 +70,7 @@ def build_proxy(backbone: nn.Module, pooling, centers=None, *, heatmap_size=None
         Outputs ``(B, K, H, W)``.
     pooling : sequence of (PoolParams, PoolParams)
         One (horizontal, vertical) pair per keypoint, e.g. from
-        :func:`kpstudy.pooling.keypoint_pooling`.
+        :func:`kpstudy.models.pooling.keypoint_pooling`.
     centers : array_like of int, shape (K, 2), optional
         Nominal keypoints ``(u, v)`` in heatmap pixels: they fix the target cells and spec.
     heatmap_size : (int, int), optional
@@ -85,7 +85,7 @@ def build_proxy(backbone: nn.Module, pooling, centers=None, *, heatmap_size=None
 
     Examples
     --------
-    >>> from kpstudy.pooling import keypoint_pooling
+    >>> from kpstudy.models.pooling import keypoint_pooling
     >>> proxy = build_proxy(nn.Identity(), keypoint_pooling([(4, 0)], [(1, 0)], (2, 10)),
     ...                     [(4, 0)], heatmap_size=(2, 10))
     >>> proxy.target_cells, proxy.index_map.shape

@@ -2,7 +2,7 @@
 
 Supported: ``Conv2d``, ``ConvTranspose2d``, ``BatchNorm2d`` (eval), ``ReLU``,
 ``AvgPool2d``, the cell pool :func:`kpstudy.verify.ops.cell_pool` (which the proxy's
-:class:`~kpstudy.pooling.CellAvgPool2d` calls), ``MaxPool2d``, ``Linear``,
+:class:`~kpstudy.models.pooling.CellAvgPool2d` calls), ``MaxPool2d``, ``Linear``,
 ``Flatten``/``flatten``, residual ``+``, ``torch.cat``, slicing that keeps the batch
 dimension, ``Identity`` and ``Dropout`` (eval); more modules through :data:`MODULES`
 (see :mod:`kpstudy.verify.operators`, "Adding a layer"). Anything else is refused with an
@@ -10,7 +10,7 @@ error naming the operation and the node. A batch norm that alone follows a convo
 is folded into it (one node, named ``conv+bn``), unless the graph is traced
 ``differentiable``: then every operator keeps the model's own modules and the affine
 offsets are computed from them at each use, so bounds carry gradients to every parameter
-(certified training, :mod:`kpstudy.certified`).
+(certified training, :mod:`kpstudy.models.certified`).
 """
 
 from __future__ import annotations

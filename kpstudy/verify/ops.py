@@ -126,7 +126,7 @@ class Pool(Op):
 def cell_pool(x: torch.Tensor, pad, kernel_size, scale: torch.Tensor) -> torch.Tensor:
     """Average of each ``k_v × k_h`` cell of the zero-padded map, times its ``scale``.
 
-    The proxy's cell pool (:class:`kpstudy.pooling.CellAvgPool2d` calls it; the tracer
+    The proxy's cell pool (:class:`kpstudy.models.pooling.CellAvgPool2d` calls it; the tracer
     records a call as one :class:`CellPool` node): linear, weights >= 0.
 
     Parameters

@@ -4,10 +4,10 @@ and a short reading of the trends computed from the tables (never written by han
 :func:`write_report` reads what the notebooks wrote under ``tables/`` and ``figures/``;
 a missing table or figure is listed as missing rather than skipped silently. The
 verification tables (T-local, T-global, T-resnet: :data:`COMPARED`) are shown as their
-figure (:func:`kpstudy.comparison.plot_comparison`), a compact table of the numbers a
-reader compares (:func:`kpstudy.comparison.compact_table`), a link to the full CSV and
+figure (:func:`kpstudy.study.comparison.plot_comparison`), a compact table of the numbers a
+reader compares (:func:`kpstudy.study.comparison.compact_table`), a link to the full CSV and
 the full table folded; their readings test each trend the paper states
-(:mod:`kpstudy.trends`) on our numbers and on the paper's.
+(:mod:`kpstudy.study.trends`) on our numbers and on the paper's.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from kpstudy.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
 from kpstudy.io import write_text_atomic
-from kpstudy.tables import reading_comparison
-from kpstudy.trends import trend_table
+from kpstudy.study.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
+from kpstudy.study.tables import reading_comparison
+from kpstudy.study.trends import trend_table
 
 __all__ = [
     "COMPARED",
@@ -176,7 +176,7 @@ def _compared(name: str, table: pd.DataFrame, md: Path, figures: Path) -> list[s
 
 
 def compact_markdown(compact: pd.DataFrame) -> str:
-    """:func:`kpstudy.comparison.compact_table` as a GitHub Markdown table: rates in %,
+    """:func:`kpstudy.study.comparison.compact_table` as a GitHub Markdown table: rates in %,
     differences in percentage points, seconds to 3 significant digits, ``–`` where
     there is no number."""
     head = (
@@ -211,10 +211,10 @@ def _sec(value) -> str:
 
 
 def trend_readings(name: str, table: pd.DataFrame) -> pd.DataFrame:
-    """The trends the paper states (:data:`kpstudy.trends.STATEMENTS`) that table
-    ``name`` can test (:func:`kpstudy.trends.trend_table`): for T-prob per tolerance
+    """The trends the paper states (:data:`kpstudy.study.trends.STATEMENTS`) that table
+    ``name`` can test (:func:`kpstudy.study.trends.trend_table`): for T-prob per tolerance
     reading; for a verification table per model and method
-    (:func:`kpstudy.comparison.method_cells`)."""
+    (:func:`kpstudy.study.comparison.method_cells`)."""
     if name == "t_prob":
         series = ["tolerance_units"] if "tolerance_units" in table else []
         reading = (lambda v: f"ours, '{v[0]}' reading") if series else None
@@ -254,7 +254,7 @@ def trend_markdown(trends: pd.DataFrame) -> str:
 def _per_group(read, compare: tuple[str, str, str] | None = None):
     """``read(table)``, once per ``model`` and tolerance reading (its lines prefixed by
     them) when the table has them; with ``compare`` (ours, paper, name), first each
-    model's sentence of :func:`kpstudy.tables.reading_comparison`."""
+    model's sentence of :func:`kpstudy.study.tables.reading_comparison`."""
 
     def readings(table):
         keys = [c for c in ("model", "tolerance_units") if c in table]

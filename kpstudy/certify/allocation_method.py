@@ -9,11 +9,12 @@ ground truth and the vertices of a convex hull of perturbed images:
 4. pooling cells of side ``2δv + 1`` centred on the rounded ground-truth keypoints → the
    proxy network and its spec ("each keypoint's own cell wins");
 5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
-6. optionally, on the same hull, the pose-bound method (:mod:`kpstudy.pose_bound`): where
-   each keypoint's argmax can go, and the pose-error bound that follows.
+6. optionally, on the same hull, the pose-bound method
+   (:mod:`kpstudy.certify.pose_bound_method`): where each keypoint's argmax can go, and the
+   pose-error bound that follows.
 
 Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
-verifying them (:mod:`kpstudy.export_benchmark` writes them for other verifiers).
+verifying them (:mod:`kpstudy.study.vnncomp` writes them for other verifiers).
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
@@ -33,21 +34,21 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy._memo import digest, remember
-from kpstudy.allocation import Allocation, allocate_tolerances, allocation_scale
-from kpstudy.evaluate import pose_errors
-from kpstudy.geometry import inside_tolerance, tolerance
+from kpstudy.certify.pose_bound_method import HullPoseBound, argmax_outside
+from kpstudy.models.evaluation import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
-from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.pnp import solve_pnp
-from kpstudy.pooling import keypoint_pooling
-from kpstudy.pose_bound import HullPoseBound, argmax_outside
-from kpstudy.preprocess import (
+from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.preprocess import (
     scale_factors,
     to_image_pixels,
     to_input_pixels,
     to_model_input,
 )
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.models.proxy import KeypointProxy, build_proxy
+from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_scale
+from kpstudy.pose.geometry import inside_tolerance, tolerance
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.spec import ArgmaxSpec
 
@@ -86,7 +87,7 @@ class SeedImage:
 
     @classmethod
     def from_keypoint_set(cls, data, index: int) -> SeedImage:
-        """Image ``index`` of a :class:`kpstudy.data.KeypointSet`."""
+        """Image ``index`` of a :class:`kpstudy.models.data.KeypointSet`."""
         return cls(
             int(data.image_ids[index]),
             data.image_keypoints[index],
@@ -99,7 +100,7 @@ class SeedImage:
 def target_pose_errors(backbone: nn.Module, images: torch.Tensor, seed: SeedImage, R, t):
     """Pose errors ``(B, 6)`` (degrees, metres) of softmax → DSNT → PnP on ``images``
     ``(B, 3, s, s)`` (normalised model inputs) against the pose ``(R, t)``; ``inf`` where
-    PnP rejects the keypoints (:func:`kpstudy.evaluate.pose_errors`)."""
+    PnP rejects the keypoints (:func:`kpstudy.models.evaluation.pose_errors`)."""
     with torch.no_grad():
         uv = dsnt_keypoints(backbone(images).float()).double().numpy()  # heatmap pixels
     image_uv = to_image_pixels(uv, scale_factors(seed.image_size, backbone.heatmap_size))
@@ -128,10 +129,10 @@ class VerificationInstance:
     inputs : Tensor, (n+1, 3, s, s)
         The hull's vertices as model inputs (normalised; row 0 the seed image).
     allocation : Allocation
-        The tolerances (:func:`kpstudy.allocation.allocate_tolerances`): ``dv`` (K × [δu,
+        The tolerances (:func:`kpstudy.pose.allocation.allocate_tolerances`): ``dv`` (K × [δu,
         δv], the cells' half-widths in heatmap px), ``delta``, ``objective``.
     tolerance_units : str
-        How the allocation was computed (:data:`kpstudy.allocation.TOLERANCE_UNITS`).
+        How the allocation was computed (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`).
     centers : ndarray of int, (K, 2)
         Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels: the cells' centres.
     R : ndarray, (3, 3)
@@ -182,7 +183,7 @@ def build_instance(
         Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
         allocation weights.
     tolerance_units : {'heatmap', 'paper'}
-        How the allocation is read (:data:`kpstudy.allocation.TOLERANCE_UNITS`): its
+        How the allocation is read (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`): its
         integers are the cells' half-widths in heatmap pixels either way; under
         ``'paper'`` they were allocated per image pixel.
 
@@ -252,7 +253,7 @@ _ALLOCATIONS: dict = {}
 
 
 def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
-    """:func:`kpstudy.sensitivity.pose_sensitivity` (its first call in a process takes
+    """:func:`kpstudy.pose.sensitivity.pose_sensitivity` (its first call in a process takes
     about 2 s), kept by the content of its inputs: a campaign's instances of one seed
     image share it."""
     key = digest(P, V, K, R, t, () if scale is None else scale)
@@ -261,7 +262,7 @@ def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
 
 
 def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
-    """:func:`kpstudy.allocation.allocate_tolerances`, kept by the content of its inputs:
+    """:func:`kpstudy.pose.allocation.allocate_tolerances`, kept by the content of its inputs:
     a campaign's hulls of one seed image share its allocation per (α, κ)."""
     key = digest(M, eps_r, eps_t, [kappa, w1, w2, max_dv])
     make = lambda: allocate_tolerances(M, eps_r, eps_t, kappa, w1, w2, max_dv=max_dv)  # noqa: E731
@@ -300,7 +301,7 @@ def certify_cells(
 
     The cells share the hull, so what depends on the hull alone is made once: the
     pose-bound method's region search, enumeration and attacks (a
-    :class:`kpstudy.pose_bound.HullPoseBound`).
+    :class:`kpstudy.certify.pose_bound_method.HullPoseBound`).
 
     Parameters
     ----------
@@ -315,7 +316,7 @@ def certify_cells(
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
     pose_bound_timeout : float, optional
-        Seconds for the second method, :class:`kpstudy.pose_bound.HullPoseBound` (reachable
+        Seconds for the second method, :class:`kpstudy.certify.HullPoseBound` (reachable
         keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
     pose_bound_stride : int
         Its cell side in heatmap pixels (1: the argmax pixel itself).
@@ -323,7 +324,7 @@ def certify_cells(
         Its bound method (``'forward'`` or ``'zonotope'``).
     pose_bound_nodes, pose_bound_start_depth : int
         Its node budget (``None``: the seconds alone) and the hull's splits before the
-        first bounds (:class:`kpstudy.pose_bound.HullPoseBound`'s ``max_nodes``,
+        first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
         ``start_depth``).
 
     Returns
@@ -346,7 +347,7 @@ def certify_cells(
         Ξ: what a ``holds`` under the ``'paper'`` reading lets through; None unless
         ``holds``), ``empirical_samples``, ``tolerance_units``; with
         ``pose_bound_timeout``, the ``pb_*`` entries of
-        :meth:`kpstudy.pose_bound.HullPoseBound.decide`.
+        :meth:`kpstudy.certify.pose_bound_method.HullPoseBound.decide`.
     """
     if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
         raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")

@@ -14,8 +14,8 @@ import torch
 from torch.func import hessian, jacfwd, jacrev
 
 from kpstudy import _checks
-from kpstudy.geometry import euler_from_matrix, matrix_from_euler_torch, project_batch
-from kpstudy.pnp import _check_problem
+from kpstudy.pose.geometry import euler_from_matrix, matrix_from_euler_torch, project_batch
+from kpstudy.pose.pnp import _check_problem
 
 #: Largest keypoint motion (pixels) that one Newton step from (R, t) may cause
 #: before (R, t) is refused as not being the PnP optimum of V.
@@ -41,7 +41,7 @@ def pose_sensitivity(P, V, K, R, t, scale=None) -> np.ndarray:
     K : array_like, shape (3, 3)
         Intrinsics.
     R, t : array_like, shapes (3, 3), (3,)
-        The PnP optimum for ``V`` (e.g. :func:`kpstudy.pnp.solve_pnp`).
+        The PnP optimum for ``V`` (e.g. :func:`kpstudy.pose.pnp.solve_pnp`).
     scale : (sx, sy), optional
         Resize factors image → heatmap, ``u' = (u + 0.5)·sx − 0.5``. When given, v is
         in heatmap pixels (the columns for u are divided by sx, those for v by sy).

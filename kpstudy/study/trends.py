@@ -35,7 +35,7 @@ class Statement:
     relative: bool = False
 
 
-#: The paper's statements, on :func:`kpstudy.comparison.method_cells` columns (``rate``,
+#: The paper's statements, on :func:`kpstudy.study.comparison.method_cells` columns (``rate``,
 #: ``time_all``) and on a T-prob table's (``soundness``).
 STATEMENTS = (
     Statement("Verified rate rises with α", "rate", "alpha", +1, "paper_rate"),
@@ -181,7 +181,7 @@ def trend_table(
     Parameters
     ----------
     cells : DataFrame
-        One row per series and cell (e.g. :func:`kpstudy.comparison.method_cells`).
+        One row per series and cell (e.g. :func:`kpstudy.study.comparison.method_cells`).
     keys : list of str
         The columns that name a cell (a statement's axis among them).
     series : list of str

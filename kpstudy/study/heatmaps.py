@@ -199,7 +199,7 @@ def symmetry_indicators(
 def backbone_heatmaps(backbone, images, batch_size: int = 16) -> torch.Tensor:
     """Unnormalised heatmaps ``(N, K, H, W)`` float32 of preprocessed images ``(N, s, s, 3)``
     in [0, 255] (the backbone's input size), computed in eval mode in batches."""
-    from kpstudy.preprocess import to_model_input
+    from kpstudy.models.preprocess import to_model_input
 
     images = np.asarray(images, np.float32)
     if images.ndim != 4 or images.shape[-1] != 3:

@@ -117,7 +117,7 @@ class Settings:
         seconds only cap a slow machine) and the hull's splits before the first bounds.
     tolerance_units : {'heatmap', 'paper'}
         How the allocation method reads its tolerances
-        (:data:`kpstudy.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
+        (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
     """
 
     checkpoint: str
@@ -634,7 +634,7 @@ def run_study(
     grid_options : dict
         :func:`grid`'s keywords (``alphas``, ``kappas``, ``seeds``, ``ms``, …).
     tolerance_units : iterable of str
-        The readings (:data:`kpstudy.allocation.TOLERANCE_UNITS`) the allocation method
+        The readings (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`) the allocation method
         runs under. The pose-bound method has no tolerances: it runs with the first only.
     pose_bound : dict, optional
         ``{model name: Settings fields of the pose-bound method}``; a model left out
@@ -718,7 +718,7 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
     in this process, one record each: what depends on the hull alone, such as the
     pose-bound method's region search, is made once (:func:`kpstudy.certify.certify_cells`)."""
     from data_gen.perturb import load_perturbations
-    from kpstudy.certify import certify_cells
+    from kpstudy.certify.allocation_method import certify_cells
 
     first = instances[0]
     if len(_by_hull(instances)) != 1:
@@ -744,9 +744,9 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
 @functools.lru_cache(maxsize=2)
 def _context(checkpoint: str, data_dir: str):
     """The backbone and a seed-image lookup over the test split, loaded once per process."""
-    from kpstudy.certify import SeedImage
-    from kpstudy.data import load_keypoint_set
-    from kpstudy.train import load_checkpoint
+    from kpstudy.certify.allocation_method import SeedImage
+    from kpstudy.models.data import load_keypoint_set
+    from kpstudy.models.training import load_checkpoint
 
     backbone, _ = load_checkpoint(checkpoint)
     test = load_keypoint_set(data_dir, "test", backbone.input_size)
@@ -825,7 +825,7 @@ def _check_settings(settings: Settings) -> None:
             f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
         )
 
-    from kpstudy.allocation import allocation_scale
+    from kpstudy.pose.allocation import allocation_scale
 
     allocation_scale(settings.tolerance_units, None)  # checks the name
     if settings.pose_bound_method not in REGION_METHODS:

@@ -20,8 +20,8 @@ import torch
 from tqdm.auto import tqdm
 
 from kpstudy import _checks
-from kpstudy.allocation import allocate_many, allocation_scale
-from kpstudy.geometry import (
+from kpstudy.pose.allocation import allocate_many, allocation_scale
+from kpstudy.pose.geometry import (
     euler_from_matrix_torch,
     inside_tolerance,
     matrix_from_euler_torch,
@@ -29,8 +29,8 @@ from kpstudy.geometry import (
     tolerance,
     wrap_degrees,
 )
-from kpstudy.pnp import solve_pnp, solve_pnp_batch
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
+from kpstudy.pose.sensitivity import pose_sensitivity
 
 #: Stopping tolerance of the soundness PnP solves (pixels). Newton's last step is below
 #: it, so the pose is within far less of its optimum; on 5e5 paper-like problems the
@@ -80,13 +80,13 @@ def probabilistic_soundness(
     chunk_images : int, optional
         Images solved together (default: about 64k PnP problems at a time).
     compile, tol_px :
-        Passed to :func:`kpstudy.pnp.solve_pnp_batch`.
+        Passed to :func:`kpstudy.pose.pnp.solve_pnp_batch`.
 
     Returns
     -------
     ndarray, shape (I,)
         Per-image fraction in [0, 1]. A vertex whose PnP pose is not valid (a point behind
-        the camera, a residual near the keypoints' spread: :class:`kpstudy.pnp.PnPResult`)
+        the camera, a residual near the keypoints' spread: :class:`kpstudy.pose.pnp.PnPResult`)
         counts as outside Ξ.
     """
     P, V, K, R, t, dV, eps = _check_study(P, V, K, R, t, dv, eps_r, eps_t, n_samples, scale)
@@ -170,11 +170,12 @@ def soundness_completeness_table(
     scale, max_dv, w1, w2 :
         Heatmap resize factors, tolerance cap (heatmap size) and allocation weights.
     compile, progress :
-        Fuse the batched PnP (:func:`kpstudy.pnp.solve_pnp_batch`); show a progress bar.
+        Fuse the batched PnP (:func:`kpstudy.pose.pnp.solve_pnp_batch`); show a progress bar.
     workers : int
-        Processes for the allocations of the whole grid (:func:`kpstudy.allocation.allocate_many`).
+        Processes for the allocations of the whole grid
+        (:func:`kpstudy.pose.allocation.allocate_many`).
     tolerance_units : {'heatmap', 'paper'}
-        The reading of the tolerances (:data:`kpstudy.allocation.TOLERANCE_UNITS`). Under
+        The reading of the tolerances (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`). Under
         ``'paper'`` the allocation and both fractions are in image pixels (the paper's
         computation) and ``soundness_true_units`` is the soundness of the same integer
         boxes read as heatmap pixels (divided by ``scale``), the boxes the verifier proves.

@@ -2,13 +2,13 @@
 every method's verified rate and time per instance in one figure, and a compact table.
 
 A *method* is one way the study decides an instance, read from the columns of a
-:mod:`kpstudy.tables` table:
+:mod:`kpstudy.study.tables` table:
 
 * ``alloc (heatmap)`` / ``alloc (paper)``: the allocation method (the paper's) under each
   tolerance reading (``tolerance_units``; plain ``alloc`` for tables without the column):
   ``verified_rate``, ``holds`` / ``violated`` / ``unknown``, ``time_*``;
-* ``pb``: the pose-bound method (:mod:`kpstudy.pose_bound`), on the rows that have its
-  columns (``pb_*``). Its time is one region search per hull, counted in full in each
+* ``pb``: the pose-bound method (:mod:`kpstudy.certify.pose_bound_method`), on the rows that
+  have its columns (``pb_*``). Its time is one region search per hull, counted in full in each
   (κ, α) cell of the hull.
 
 :func:`method_cells` turns a table into one row per model, method and cell (the data of
@@ -79,7 +79,7 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     Parameters
     ----------
     table : DataFrame
-        :func:`kpstudy.tables.t_local` (``t_global``, ``t_resnet``) output, as returned or
+        :func:`kpstudy.study.tables.t_local` (``t_global``, ``t_resnet``) output, as returned or
         read back from its CSV; columns a table of an older version lacks (``model``,
         ``tolerance_units``, ``pb_*``, ``time_holds_mean`` …) are taken as absent.
 

@@ -1,6 +1,6 @@
 """data_gen's COCO keypoint dataset as network inputs, keypoint labels and poses.
 
-Images go through preprocessing F0 (:mod:`kpstudy.preprocess`): the whole image is
+Images go through preprocessing F0 (:mod:`kpstudy.models.preprocess`): the whole image is
 resized to the square model input, values stay in [0, 255] (``normalise`` divides by 255
 when a batch enters a network). Keypoints are converted to the heatmap's pixels with the
 resize factors (docs/design.md §3); the backbones' heatmaps have the input's size.
@@ -14,7 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from kpstudy.preprocess import resize_to_input, scale_factors, to_image_pixels, to_input_pixels
+from kpstudy.models.preprocess import (
+    resize_to_input,
+    scale_factors,
+    to_image_pixels,
+    to_input_pixels,
+)
 
 SPLITS = ("train", "val", "test")
 

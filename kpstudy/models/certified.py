@@ -222,8 +222,8 @@ def robust_heatmap_loss(lower, upper, keypoints, weights, sigma: float) -> torch
     """Upper bound of the heatmap KL loss over every heatmap between ``lower`` and
     ``upper`` ``(B, K, H, W)``: ``Σ t log t − Σ t·l + logsumexp(u)`` per keypoint, averaged
     over the keypoints with ``weights (B, K)`` > 0 (targets ``t`` as
-    :func:`kpstudy.train.heatmap_targets` at ``keypoints (B, K, 2)``, heatmap pixels)."""
-    from kpstudy.train import heatmap_targets
+    :func:`kpstudy.models.training.heatmap_targets` at ``keypoints (B, K, 2)``, heatmap pixels)."""
+    from kpstudy.models.training import heatmap_targets
 
     H = lower.shape[-1]
     t = heatmap_targets(keypoints, H, sigma).flatten(2)

@@ -1,7 +1,7 @@
 """The study's verification instances as a VNN-COMP benchmark (issue 28).
 
 :func:`export_benchmark` writes each instance of a campaign grid
-(:func:`kpstudy.campaign.grid`) in the layout of the VNN-COMP benchmarks, so that any
+(:func:`kpstudy.study.campaign.grid`) in the layout of the VNN-COMP benchmarks, so that any
 verifier that reads ONNX + VNN-LIB runs exactly what :func:`kpstudy.certify.certify`
 verifies::
 
@@ -45,7 +45,7 @@ def _num(x: float) -> str:
 
 
 def instance_name(instance) -> str:
-    """A file-name stem for a :class:`kpstudy.campaign.Instance`: kind, seed image, hull
+    """A file-name stem for a :class:`kpstudy.study.campaign.Instance`: kind, seed image, hull
     (``m2_ov`` / ``m2_nov``, or ``l2`` for a level), ``a<α>_k<κ>``, e.g.
     ``blocks_481_m2_ov_a1_k1.5`` or ``contrast_481_l0.005_a1_k1``."""
     if instance.level is not None:
@@ -100,8 +100,8 @@ def export_benchmark(
     out : path
         The benchmark folder; must not exist or be empty. Built beside it and moved onto
         it when every instance is written.
-    instances : list of kpstudy.campaign.Instance
-        Usually :func:`kpstudy.campaign.grid`'s; duplicates are written once.
+    instances : list of kpstudy.study.campaign.Instance
+        Usually :func:`kpstudy.study.campaign.grid`'s; duplicates are written once.
     timeout : float
         Seconds per instance, the third column of ``instances.csv``.
     input_form, vnnlib_version :
@@ -131,9 +131,9 @@ def export_benchmark(
     from tqdm.auto import tqdm
 
     from kpstudy import __version__
-    from kpstudy.campaign import Settings, _context, instance_vertices, provenance
-    from kpstudy.certify import build_instance
+    from kpstudy.certify.allocation_method import build_instance
     from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
+    from kpstudy.study.campaign import Settings, _context, instance_vertices, provenance
     from kpstudy.verify.export import INPUT_FORMS, VNNLIB_VERSIONS, export_instance
 
     checkpoint, data_dir = Path(checkpoint), Path(data_dir)
@@ -223,7 +223,7 @@ def export_benchmark(
             readme = _readme(
                 command
                 or (
-                    f"kpstudy.export_benchmark.export_benchmark({str(checkpoint)!r}, "
+                    f"kpstudy.study.export_benchmark({str(checkpoint)!r}, "
                     f"{str(data_dir)!r}, {str(out)!r}, …)"
                 ),
                 checkpoint,

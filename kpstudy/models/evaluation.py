@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from kpstudy.data import load_keypoint_set
-from kpstudy.geometry import POSE_AXES, inside_tolerance, pose_error, tolerance
-from kpstudy.pnp import solve_pnp
-from kpstudy.train import load_checkpoint, pck, predict
+from kpstudy.models.data import load_keypoint_set
+from kpstudy.models.training import load_checkpoint, pck, predict
+from kpstudy.pose.geometry import POSE_AXES, inside_tolerance, pose_error, tolerance
+from kpstudy.pose.pnp import solve_pnp
 
 ALPHAS = (0.5, 1.0, 1.5, 2.0)
 
@@ -26,7 +26,7 @@ def pose_errors(points_3d, image_keypoints, K, R, t) -> np.ndarray:
     ``(N, K, 2)`` (image pixels) against the ground truth ``R (N, 3, 3)``, ``t (N, 3)``.
     Keypoints PnP cannot use (collinear, clustered, non-finite) and poses it flags as not
     valid (a point behind the camera, a residual near the keypoints' spread: see
-    :class:`kpstudy.pnp.PnPResult`) give an infinite error, so they never lie inside Ξ."""
+    :class:`kpstudy.pose.pnp.PnPResult`) give an infinite error, so they never lie inside Ξ."""
     out = np.full((len(image_keypoints), 6), np.inf)
     for i, uv in enumerate(image_keypoints):
         try:

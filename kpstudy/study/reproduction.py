@@ -5,10 +5,10 @@ Stages, in order; each is skipped when its outputs are current:
 1. **data** (paper §8.1): the rendered COCO dataset (data_gen), the perturbation sets of
    its test seed images (objects at the render's resolution, blocks at the ResNet-18
    input, brightness and contrast at the CNN input). Reused when its settings match.
-2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.train.train`,
+2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.models.training.train`,
    which resumes an interrupted run and returns a finished one as it is), and the
    verification-friendly CNN (:data:`FRIENDLY`: the affine-decoder CNN trained with the
-   bound term of :mod:`kpstudy.certified`). Its quick-profile checkpoint ships with
+   bound term of :mod:`kpstudy.models.certified`). Its quick-profile checkpoint ships with
    kpstudy (:data:`SHIPPED`) and is copied when it was made by the same recipe on the
    same dataset; otherwise, or with ``retrain_friendly``, it is trained.
 3. **notebooks**: ``notebooks/NN_*.ipynb`` run by papermill with the profile's
@@ -17,7 +17,7 @@ Stages, in order; each is skipped when its outputs are current:
    ``figures/``. A notebook reruns only when its parameters or its inputs changed; the
    verification campaigns inside (06–08) resume from their SQLite stores.
 4. **report**: ``REPORT.md``, every table and figure with a short reading of the trends
-   (:mod:`kpstudy.report`).
+   (:mod:`kpstudy.study.report`).
 
 The ``quick`` profile runs everything at reduced counts on 2 CPU cores; ``paper`` has the
 paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and is meant for a
@@ -36,7 +36,7 @@ from pathlib import Path
 
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
 #: The verification-friendly CNN's recipe, first stage (``TrainConfig`` fields beside the
 #: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
@@ -68,7 +68,7 @@ FRIENDLY_FINETUNE = dict(
 )
 #: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`
 #: then :data:`FRIENDLY_FINETUNE`.
-SHIPPED = Path(__file__).resolve().parent / "models" / "weights" / "cnn_affine_quick.pt"
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_affine_quick.pt"
 
 
 @dataclass(frozen=True)
@@ -88,10 +88,10 @@ class Profile:
         budget per instance (``None``: the seconds decide): the same verdicts on any
         machine.
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
-        run under (:data:`kpstudy.allocation.TOLERANCE_UNITS`), the first also with the
+        run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
     local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
-        pose-bound method's :class:`kpstudy.campaign.Settings` fields in T-local and
+        pose-bound method's :class:`kpstudy.study.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
         hull: the same verdicts on any machine), ``pose_bound_start_depth``. A model left
@@ -138,8 +138,8 @@ class Profile:
                 f"seeds: expected at most perturbed_seeds={self.perturbed_seeds} seed images, "
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
-        from kpstudy.allocation import TOLERANCE_UNITS
-        from kpstudy.campaign import Settings
+        from kpstudy.pose.allocation import TOLERANCE_UNITS
+        from kpstudy.study.campaign import Settings
 
         readings = self.tolerance_units
         if (
@@ -293,7 +293,7 @@ def reproduce(
         elif stage == "notebooks":
             run_notebooks(prof, out, scheduler=scheduler, progress=progress)
         else:
-            from kpstudy.report import write_report
+            from kpstudy.study.report import write_report
 
             write_report(out, asdict(prof))
         timings[stage] = round(time.perf_counter() - start, 1)
@@ -355,9 +355,9 @@ def checkpoints(out: Path) -> dict[str, Path]:
 
 
 def friendly_recipe(prof: Profile):
-    """The verification-friendly CNN's two :class:`kpstudy.train.TrainConfig` stages on
+    """The verification-friendly CNN's two :class:`kpstudy.models.training.TrainConfig` stages on
     ``prof``; the second's ``init`` is left ``None`` (the first stage's weights fill it)."""
-    from kpstudy.train import TrainConfig
+    from kpstudy.models.training import TrainConfig
 
     common = dict(images=prof.cnn_images, seed=prof.seed)
     return TrainConfig(**FRIENDLY, **common), TrainConfig(**FRIENDLY_FINETUNE, **common)
@@ -371,7 +371,7 @@ def train_models(
     import torch
 
     from data_gen.dataset import load_coco
-    from kpstudy.train import TrainConfig, config_of, train, weights_digest
+    from kpstudy.models.training import TrainConfig, config_of, train, weights_digest
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
@@ -435,12 +435,12 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
     :data:`FRIENDLY` then :data:`FRIENDLY_FINETUNE` on ``data_dir``) to ``target`` without
     its optimiser state (the checkpoint is finished), and its card ``target.json``: the
     recipe (and the first stage's, ``init_recipe``), the test-split
-    metrics of :func:`kpstudy.evaluate.evaluate` and the heatmaps' sum and absolute sum
+    metrics of :func:`kpstudy.models.evaluation.evaluate` and the heatmaps' sum and absolute sum
     on :func:`probe_input`. Returns the card."""
     import torch
 
-    from kpstudy.evaluate import evaluate
-    from kpstudy.train import load_checkpoint
+    from kpstudy.models.evaluation import evaluate
+    from kpstudy.models.training import load_checkpoint
 
     backbone, state = load_checkpoint(checkpoint)
     if state["epoch"] < state["config"]["epochs"]:

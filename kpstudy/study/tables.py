@@ -1,6 +1,6 @@
 """The verification tables of paper §8.4 from campaign records, the paper's numbers beside ours.
 
-A campaign record (:func:`kpstudy.campaign.run_campaign`) is one instance: its grid
+A campaign record (:func:`kpstudy.study.campaign.run_campaign`) is one instance: its grid
 fields (``kind``, ``m``, ``overlapping``, ``level``, ``alpha``, ``kappa``) and the
 certificate's (``status``, ``time``, ``seed_inside``, …). Each table groups records by
 its axes and reports, per cell:
@@ -24,7 +24,7 @@ its axes and reports, per cell:
   proofs;
 * ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
   RTX A4000; NaN where the paper has no cell);
-* with the pose-bound method's records (``pb_*``, :mod:`kpstudy.pose_bound`):
+* with the pose-bound method's records (``pb_*``, :mod:`kpstudy.certify.pose_bound_method`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as ``capped``,
   from ``pb_stopped``), ``pb_seeds_inside`` (seeds whose *argmax* → PnP pose lies in Ξ,
   ``pb_seed_inside``: the pipeline this method certifies; the target model's ``seed_inside``
@@ -48,7 +48,7 @@ import re
 import numpy as np
 import pandas as pd
 
-from kpstudy.geometry import POSE_AXES, tolerance
+from kpstudy.pose.geometry import POSE_AXES, tolerance
 
 __all__ = [
     "PAPER_T_GLOBAL",
@@ -137,7 +137,7 @@ PAPER_T_PROB = {
 }
 
 _STATUSES = ("holds", "violated", "unknown")
-_PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.pose_bound's pb_rule
+_PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.certify.pose_bound_method's pb_rule
 
 
 def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -291,7 +291,7 @@ _JSON_FLOATS = {"inf": "Infinity", "nan": "NaN"}
 
 
 def _pb_rules(cell: pd.DataFrame) -> pd.Series:
-    """The rule that decided each record's ``pb_status`` (:mod:`kpstudy.pose_bound`):
+    """The rule that decided each record's ``pb_status`` (:mod:`kpstudy.certify.pose_bound_method`):
     ``pb_rule`` where stored, else the only rules of the code before it (``'witness'``
     for ``violated``, ``'linearised'`` for ``holds`` / ``unknown``); None without a
     ``pb_status`` (e.g. an ``error`` record)."""
@@ -308,7 +308,7 @@ def _eps(cell: pd.DataFrame) -> list[np.ndarray]:
 
 
 def t_prob(table: pd.DataFrame) -> pd.DataFrame:
-    """T-prob (paper Table 2): a :func:`kpstudy.montecarlo.soundness_completeness_table`
+    """T-prob (paper Table 2): a :func:`kpstudy.pose.montecarlo.soundness_completeness_table`
     with the paper's soundness and completeness beside ours."""
     out = table.copy()
     paper = [PAPER_T_PROB.get((k, a), (np.nan, np.nan)) for k, a in zip(out.kappa, out.alpha)]

@@ -27,8 +27,8 @@ go and decides the pose error from that (docs/design.md §4.11):
    every witness image of the reachability search.
 
 Every PnP here is Levenberg–Marquardt from the nominal pose
-(:func:`kpstudy.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
-behind the camera, :class:`kpstudy.pnp.PnPResult`) counts as outside Ξ (an ``inf`` error).
+(:func:`kpstudy.pose.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
+behind the camera, :class:`kpstudy.pose.pnp.PnPResult`) counts as outside Ξ (an ``inf`` error).
 
 Verdict, the first rule that applies deciding (``pb_rule``):
 
@@ -59,12 +59,12 @@ import numpy as np
 import torch
 
 from kpstudy._memo import digest
-from kpstudy.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.models.heads import argmax_keypoints
+from kpstudy.models.pooling import cell_bounds, keypoint_pooling, num_cells
+from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.models.proxy import build_proxy
-from kpstudy.pnp import solve_pnp_batch
-from kpstudy.pooling import cell_bounds, keypoint_pooling, num_cells
-from kpstudy.preprocess import scale_factors, to_image_pixels, to_input_pixels
+from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
+from kpstudy.pose.pnp import solve_pnp_batch
 from kpstudy.verify import Regions, reachable_argmax
 from kpstudy.verify.reachable import check_search
 
@@ -99,7 +99,7 @@ ENUMERATION_CHUNK = 10**5
 def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
     """Heatmap pixels ``(n_k, 2)`` as ``(u, v)`` of each keypoint's possible cells.
 
-    ``pooling`` is the (horizontal, vertical) :class:`kpstudy.pooling.PoolParams` pair of
+    ``pooling`` is the (horizontal, vertical) :class:`kpstudy.models.pooling.PoolParams` pair of
     each keypoint that the regions' proxy used; a cell contributes all its real pixels.
     """
     out = []
@@ -158,7 +158,7 @@ def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) ->
 
     Parameters
     ----------
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
         Its ``points_3d (K, 3)`` (metres) and intrinsics ``K (3, 3)``.
     keypoints : sequence of K arrays, shape (n_k, 2)
         Possible ``(u, v)`` of keypoint k, image pixels; ``n_k ≥ 1``. The combinations are
@@ -236,7 +236,7 @@ class HullPoseBound:
         Heatmap backbone with ``heatmap_size`` and ``input_size``.
     hull : kpstudy.verify.ConvexHull
         Model inputs ``(n+1, 3, s, s)``, the seed first.
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
     R, t : ndarray, shapes (3, 3) and (3,)
         Nominal pose (PnP on the ground truth; t in metres): every PnP here starts there
         and its error is measured from it.
@@ -588,13 +588,13 @@ def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.n
 
     Parameters
     ----------
-    seed : kpstudy.certify.SeedImage
+    seed : kpstudy.certify.allocation_method.SeedImage
     pixels : sequence of K arrays, shape (n_k, 2)
         Possible heatmap pixels ``(u, v)`` of each keypoint.
     base : ndarray, shape (K, 2)
         Heatmap pixels ``(u, v)`` the other keypoints keep (the seed image's argmax).
     factors : pair
-        :func:`kpstudy.preprocess.scale_factors` of the seed image and the heatmaps.
+        :func:`kpstudy.models.preprocess.scale_factors` of the seed image and the heatmaps.
     R, t : nominal pose; eps : ndarray, shape (6,), Ξ's half-widths (degrees, metres).
 
     Returns
@@ -619,7 +619,7 @@ def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.n
 
 def _pose_errors(seed, V, R, t) -> np.ndarray:
     """Pose errors ``(B, 6)`` of PnP (from the nominal pose) on keypoints ``V (B, K, 2)``;
-    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pnp.PnPResult`), so that
+    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pose.pnp.PnPResult`), so that
     it never lies inside Ξ."""
     B = len(V)
     pose = solve_pnp_batch(

@@ -2,12 +2,12 @@
 the paper's, its figures and files (T-local, T-global, T-resnet: notebooks 06–08).
 
 :func:`run_table` is what each of those notebooks calls: the campaigns of every model ×
-tolerance reading × perturbation kind of the table (:func:`kpstudy.campaign.run_study`,
+tolerance reading × perturbation kind of the table (:func:`kpstudy.study.campaign.run_study`,
 resumable stores under ``out/campaigns``), then ``out/tables/<name>_records.csv``, the
-table ``out/tables/<name>.csv`` / ``.md`` (:mod:`kpstudy.tables`), the figure beside the
-paper's ``out/figures/<name>.png`` (:func:`kpstudy.comparison.plot_comparison`) and,
+table ``out/tables/<name>.csv`` / ``.md`` (:mod:`kpstudy.study.tables`), the figure beside the
+paper's ``out/figures/<name>.png`` (:func:`kpstudy.study.comparison.plot_comparison`) and,
 where the pose-bound method ran, ``out/figures/<name>_pose_bound.png``
-(:func:`kpstudy.tables.plot_pose_bounds`). The report (:mod:`kpstudy.report`) reads
+(:func:`kpstudy.study.tables.plot_pose_bounds`). The report (:mod:`kpstudy.study.report`) reads
 those files.
 """
 
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from kpstudy import campaign, comparison, tables
 from kpstudy.io import save_figure, write_table, write_text_atomic
+from kpstudy.study import campaign, comparison, tables
 
 __all__ = ["TABLES", "StudyTable", "TableKind", "run_table"]
 
@@ -29,7 +29,7 @@ __all__ = ["TABLES", "StudyTable", "TableKind", "run_table"]
 class TableKind:
     """What one of the study's verification tables runs and how it is summarised."""
 
-    kinds: tuple[str, ...]  # perturbation kinds (kpstudy.campaign.grid)
+    kinds: tuple[str, ...]  # perturbation kinds (kpstudy.study.campaign.grid)
     summarise: Callable[[pd.DataFrame], pd.DataFrame]  # records → the table
     title: str  # the figures' title
 
@@ -56,7 +56,7 @@ class StudyTable:
         The summary per cell, the paper's numbers beside ours.
     readings : list of str
         Per model, which tolerance reading matches the paper's verified rate
-        (:func:`kpstudy.tables.reading_comparison`).
+        (:func:`kpstudy.study.tables.reading_comparison`).
     figures : dict of str → Path
         The PNGs written: ``'comparison'`` and, where the pose-bound method ran,
         ``'pose_bound'``.
@@ -92,7 +92,7 @@ def run_table(
     out : path
         The run's folder: ``campaigns/``, ``tables/`` and ``figures/`` go under it.
     grid_options, tolerance_units, pose_bound, **campaign_options :
-        :func:`kpstudy.campaign.run_study`'s (``alphas``, ``kappas``, ``seeds``, ``ms`` of
+        :func:`kpstudy.study.campaign.run_study`'s (``alphas``, ``kappas``, ``seeds``, ``ms`` of
         the grid; the readings; the pose-bound method's settings per model; ``timeout``,
         ``nodes``, ``method``, ``workers``, ``scheduler``, …).
 

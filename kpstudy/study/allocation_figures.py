@@ -22,11 +22,11 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from kpstudy import _checks
-from kpstudy.allocation import allocate_tolerances
-from kpstudy.geometry import euler_from_matrix, matrix_from_euler, project_batch, tolerance
-from kpstudy.pnp import solve_pnp
-from kpstudy.preprocess import scale_factors
-from kpstudy.sensitivity import pose_sensitivity
+from kpstudy.models.preprocess import scale_factors
+from kpstudy.pose.allocation import allocate_tolerances
+from kpstudy.pose.geometry import euler_from_matrix, matrix_from_euler, project_batch, tolerance
+from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.sensitivity import pose_sensitivity
 
 __all__ = [
     "ALPHAS",
@@ -79,7 +79,7 @@ def allocation_frame(
     kappa : float
         Scaling factor κ > 0 of the allocation constraint.
     w1, w2 : float
-        Allocation weights (see :func:`kpstudy.allocation.allocate_tolerances`).
+        Allocation weights (see :func:`kpstudy.pose.allocation.allocate_tolerances`).
 
     Returns
     -------

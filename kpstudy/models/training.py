@@ -14,7 +14,7 @@ A run may start from another checkpoint's weights (``init``: the SHA-256 of thos
 second, certified stage on top of a natural or lightly certified one. The checkpoint
 records the initial checkpoint's configuration (``init_config``).
 
-With ``certified_weight`` > 0 a bound term (:mod:`kpstudy.certified`) joins the loss:
+With ``certified_weight`` > 0 a bound term (:mod:`kpstudy.models.certified`) joins the loss:
 the heatmap loss's worst case, bounded by kpstudy.verify's forward bounds over random
 hulls of the study's kinds around the first ``certified_hulls`` images of each batch.
 Its gradient is rescaled to ``certified_weight`` times the natural loss's gradient norm
@@ -50,10 +50,11 @@ from kornia.geometry.subpix import render_gaussian2d
 from torch import nn
 from tqdm import tqdm
 
-from kpstudy.data import KeypointSet, load_keypoint_set
 from kpstudy.io import write_bytes_atomic
-from kpstudy.models import BACKBONES, argmax_keypoints, build_backbone, dsnt_keypoints
-from kpstudy.preprocess import to_model_input
+from kpstudy.models.backbones import BACKBONES, build_backbone
+from kpstudy.models.data import KeypointSet, load_keypoint_set
+from kpstudy.models.heads import argmax_keypoints, dsnt_keypoints
+from kpstudy.models.preprocess import to_model_input
 
 FORMAT = "kpstudy-checkpoint/1"
 #: Learning-rate schedules of :class:`TrainConfig`.
@@ -108,7 +109,7 @@ class TrainConfig:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         if self.images is not None and (not isinstance(self.images, int) or self.images < 1):
             raise ValueError(f"images: expected a positive integer or None, got {self.images!r}")
-        from kpstudy.certified import BOUND_METHODS
+        from kpstudy.models.certified import BOUND_METHODS
 
         if self.certified_method not in BOUND_METHODS:
             raise ValueError(
@@ -533,11 +534,16 @@ def _backward(loss, bound, weight: float, params: list) -> None:
 
 class _CertifiedTerm:
     """The bound term of one training run: a hull sampler and the backbone's
-    differentiable graph (:mod:`kpstudy.certified`), its batch norms normalising by the
-    statistics of each batch's natural pass (:class:`kpstudy.certified.BatchStatistics`)."""
+    differentiable graph (:mod:`kpstudy.models.certified`), its batch norms normalising by the
+    statistics of each batch's natural pass (:class:`kpstudy.models.certified.BatchStatistics`)."""
 
     def __init__(self, config: TrainConfig, backbone: nn.Module, train_set: KeypointSet):
-        from kpstudy.certified import BatchStatistics, HullSampler, bound_graph, occluder_patches
+        from kpstudy.models.certified import (
+            BatchStatistics,
+            HullSampler,
+            bound_graph,
+            occluder_patches,
+        )
 
         W, H = train_set.image_size
         s = train_set.input_size
@@ -550,7 +556,7 @@ class _CertifiedTerm:
 
     def __call__(self, x, keypoints, weights, scale: float) -> torch.Tensor:
         """The term on the first hulls of batch ``x``, after its natural pass."""
-        from kpstudy.certified import hull_bounds, robust_heatmap_loss
+        from kpstudy.models.certified import hull_bounds, robust_heatmap_loss
 
         n = min(self.hulls, len(x))
         vertices = self.sampler(x[:n].contiguous())

@@ -1,0 +1,37 @@
+"""The backbones by name: :data:`BACKBONES` and :func:`build_backbone`."""
+
+from torch import nn
+
+from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder
+from kpstudy.models.resnet import HeatmapResNet18
+
+BACKBONES = {
+    "cnn": HeatmapCNN,
+    "cnn_affine": HeatmapCNNAffineDecoder,
+    "resnet18": HeatmapResNet18,
+}
+
+
+def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
+    """A freshly initialised heatmap backbone.
+
+    Parameters
+    ----------
+    name : {'cnn', 'cnn_affine', 'resnet18'}
+        ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'cnn_affine'``: the same
+        with an affine decoder (no ReLU after the transposed convolutions, the
+        verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps, ~1.25e7
+        parameters.
+    num_keypoints : int
+        Heatmap channels.
+
+    Examples
+    --------
+    >>> build_backbone("cnn").input_size
+    64
+    """
+    if name not in BACKBONES:
+        raise ValueError(f"name: expected one of {sorted(BACKBONES)}, got {name!r}")
+    if isinstance(num_keypoints, bool) or not isinstance(num_keypoints, int) or num_keypoints < 1:
+        raise ValueError(f"num_keypoints: expected a positive integer, got {num_keypoints!r}")
+    return BACKBONES[name](num_keypoints)
