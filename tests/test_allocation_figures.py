@@ -240,3 +240,24 @@ def test_plots_bad_input(frame):
         plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[0], alpha=0.0, kappa=1.0)
     with pytest.raises(ValueError, match="^kappa"):
         plot_keypoint_samples(d, np.ones((3, 2)), keypoints=[0], alpha=1.0, kappa=-1.0)
+
+
+def test_the_f_alloc_table_is_the_mean_and_spread_per_alpha_and_keypoint():
+    from kpstudy.study.allocation_figures import allocation_table
+
+    frame = pd.DataFrame(
+        {
+            "alpha": [1.0, 1.0, 1.0, 1.0, 2.0, 2.0],
+            "keypoint": [0, 0, 1, 1, 0, 0],
+            "du": [1, 3, 0, 0, 2, 2],
+            "dv": [2, 2, 4, 0, 5, 7],
+        }
+    )
+    table = allocation_table(frame, ["nose", "tail"])
+    assert list(table.columns) == [
+        *("alpha", "keypoint", "name", "du_mean", "du_std", "dv_mean", "dv_std"),
+    ]
+    assert table["name"].tolist() == ["nose", "tail", "nose"]
+    assert table["du_mean"].tolist() == [2.0, 0.0, 2.0]
+    assert table["dv_mean"].tolist() == [2.0, 2.0, 6.0]
+    assert table["du_std"].round(6).tolist() == [1.414214, 0.0, 0.0]

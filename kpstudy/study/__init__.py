@@ -26,6 +26,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "FRAME_COLUMNS",
             "allocation_errorbars",
             "allocation_frame",
+            "allocation_table",
             "inside_fractions",
             "keypoint_deviation_samples",
             "plot_allocation",

@@ -33,6 +33,7 @@ __all__ = [
     "FRAME_COLUMNS",
     "allocation_errorbars",
     "allocation_frame",
+    "allocation_table",
     "inside_fractions",
     "keypoint_deviation_samples",
     "plot_allocation",
@@ -130,6 +131,16 @@ def allocation_frame(
         },
         columns=list(FRAME_COLUMNS),
     )
+
+
+def allocation_table(frame: pd.DataFrame, keypoint_names) -> pd.DataFrame:
+    """The F-alloc table: mean and standard deviation of ``δu``, ``δv`` (heatmap pixels)
+    over the images of :func:`allocation_frame`'s ``frame``, per α and keypoint, with the
+    keypoint's name from ``keypoint_names`` (indexed by keypoint)."""
+    table = frame.groupby(["alpha", "keypoint"])[["du", "dv"]].agg(["mean", "std"]).reset_index()
+    table.columns = ["alpha", "keypoint", "du_mean", "du_std", "dv_mean", "dv_std"]
+    table.insert(2, "name", [keypoint_names[k] for k in table["keypoint"]])
+    return table
 
 
 def plot_allocation(frame: pd.DataFrame, keypoint_names=None) -> Figure:

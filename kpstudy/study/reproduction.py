@@ -200,9 +200,11 @@ LOCAL_POSE_BOUND = {
         pose_bound_start_depth=2,
     ),
 }
-#: The same in T-global: the zonotope for both, up to 4 nodes per hull.
+#: The same in T-global: the zonotope for both, up to 4 nodes per hull. A whole-hull node
+#: takes ~28 s on the friendly CNN on 2 cores, so the 300 s cap leaves the node budget to
+#: decide on a loaded machine too (at 120 s the cap ended 4 to 12 hulls' searches).
 GLOBAL_POSE_BOUND = {
-    model: dict(pose_bound_method="zonotope", pose_bound_timeout=120.0, pose_bound_nodes=4)
+    model: dict(pose_bound_method="zonotope", pose_bound_timeout=300.0, pose_bound_nodes=4)
     for model in ("cnn", "cnn_affine")
 }
 
@@ -494,6 +496,7 @@ def run_notebooks(
         ),
         "04_allocation": dict(data_dir=data_dir, images=prof.figure_images, seed=prof.seed),
         "05_probabilistic": dict(
+            image_size=prof.dataset_size,
             images=prof.images,
             samples=prof.samples,
             seed=prof.seed,
