@@ -113,7 +113,12 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     # The regions from zonotope bounds, recorded as such.
     zono = certify(backbone, vertices, seed, alpha=1e4, pose_bound_method="zonotope", **budget)
     assert zono["pb_method"] == "zonotope" and huge["pb_method"] == "forward"
-    assert zono["pb_status"] == "holds" and len(zono["pb_pixels"]) == 23
+    assert len(zono["pb_pixels"]) == 23 and zono["pb_rule"] in ("enumeration", "linearised")
+    # α = 10⁴: every pose PnP gives lies in Ξ, so only a combination whose pose PnP flags
+    # as not valid (an infinite error) keeps it open (the tiny network's regions may
+    # hold one, depending on its training's thread count).
+    if zono["pb_status"] != "holds":
+        assert zono["pb_status"] == "unknown" and zono["pb_exact"] == [np.inf] * 6
     assert zono["pb_nodes"] == huge["pb_nodes"] == 1
     with pytest.raises(ValueError, match="^method"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")
