@@ -8,11 +8,7 @@ from tests.test_campaign import study  # noqa: F401  (the module fixture)
 
 def test_a_table_runs_its_campaigns_and_writes_its_files(study, tmp_path):  # noqa: F811
     data, checkpoint = study
-    result = run_table(
-        "t_resnet",
-        {"tiny": str(checkpoint)},
-        data,
-        tmp_path,
+    options = dict(
         grid_options=dict(alphas=[1.5], kappas=[1.0], ms=[2], overlapping=[True]),
         tolerance_units=("heatmap", "paper"),
         pose_bound={"tiny": dict(pose_bound_timeout=60.0, pose_bound_nodes=1)},
@@ -20,6 +16,7 @@ def test_a_table_runs_its_campaigns_and_writes_its_files(study, tmp_path):  # no
         nodes=2,
         check_samples=0,
     )
+    result = run_table("t_resnet", {"tiny": str(checkpoint)}, data, tmp_path, **options)
     assert set(result.records.kind) == set(TABLES["t_resnet"].kinds)
     assert len(result.records) == 2 * 2  # two seed images, two readings
     assert set(result.table.tolerance_units) == {"heatmap", "paper"}
@@ -30,18 +27,7 @@ def test_a_table_runs_its_campaigns_and_writes_its_files(study, tmp_path):  # no
         assert path.parent == tmp_path / "figures" and path.read_bytes()[:4] == b"\x89PNG"
     assert all(line.startswith("tiny: ") for line in result.readings)
     # A rerun resumes from the stores: the same records.
-    again = run_table(
-        "t_resnet",
-        {"tiny": str(checkpoint)},
-        data,
-        tmp_path,
-        grid_options=dict(alphas=[1.5], kappas=[1.0], ms=[2], overlapping=[True]),
-        tolerance_units=("heatmap", "paper"),
-        pose_bound={"tiny": dict(pose_bound_timeout=60.0, pose_bound_nodes=1)},
-        timeout=30,
-        nodes=2,
-        check_samples=0,
-    )
+    again = run_table("t_resnet", {"tiny": str(checkpoint)}, data, tmp_path, **options)
     assert again.records["status"].tolist() == result.records["status"].tolist()
 
 
