@@ -8,15 +8,20 @@ subpackages existed: the CLI, data_gen and every worker process start as fast.
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 from collections.abc import Callable
+from pathlib import Path
 
 
 def lazy_exports(
     package: str, modules: dict[str, tuple[str, ...]]
 ) -> tuple[list[str], Callable[[str], object], Callable[[], list[str]]]:
     """``__all__``, ``__getattr__`` and ``__dir__`` for ``package`` that re-export
-    ``modules`` (submodule name → its public names).
+    ``modules`` (submodule name → its public names, or None: the submodule's own literal
+    ``__all__``, read from its source without importing it, so the names stand in one
+    place).
 
     Examples
     --------
@@ -24,6 +29,10 @@ def lazy_exports(
     >>> all_, getattr_("solve_pnp").__module__
     (['solve_pnp'], 'kpstudy.pose.pnp')
     """
+    modules = {
+        module: _source_all(package, module) if names is None else names
+        for module, names in modules.items()
+    }
     where = {name: module for module, names in modules.items() for name in names}
     if len(where) != sum(map(len, modules.values())):
         raise ValueError(f"modules: a name is exported twice in {package}")
@@ -42,3 +51,14 @@ def lazy_exports(
         return sorted(set(vars(importlib.import_module(package))) | set(where))
 
     return sorted(where), __getattr__, __dir__
+
+
+def _source_all(package: str, module: str) -> tuple[str, ...]:
+    """The literal ``__all__`` of ``package.module``, from its source file."""
+    path = Path(importlib.util.find_spec(package).submodule_search_locations[0], f"{module}.py")
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets
+        ):
+            return tuple(ast.literal_eval(node.value))
+    raise ValueError(f"modules: {package}.{module} has no literal __all__ to re-export")

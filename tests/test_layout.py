@@ -137,3 +137,16 @@ def test_the_design_states_the_rule():
         name = part if part == "infrastructure" else f"`{part}`"
         row = f"| {name} | {cell(names).replace('*', 'anything')} |"
         assert row in text, f"docs/design.md §2 should have the row {row}"
+
+
+def test_a_re_export_reads_the_modules_own_list_or_refuses():
+    import pytest
+
+    from kpstudy._lazy import lazy_exports
+    from kpstudy.pose import allocation
+
+    names, getattr_, _ = lazy_exports("kpstudy.pose", {"allocation": None})
+    assert names == sorted(allocation.__all__)
+    assert getattr_("allocate_tolerances") is allocation.allocate_tolerances
+    with pytest.raises(ValueError, match=r"^modules: kpstudy.pose.pnp has no literal __all__"):
+        lazy_exports("kpstudy.pose", {"pnp": None})

@@ -16,14 +16,7 @@ from kpstudy._lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "allocation": (
-            "MAX_BOUND",
-            "TOLERANCE_UNITS",
-            "Allocation",
-            "allocate_many",
-            "allocate_tolerances",
-            "allocation_scale",
-        ),
+        "allocation": None,  # its __all__
         "geometry": (
             "EPS_R",
             "EPS_T",

@@ -21,36 +21,9 @@ from kpstudy._lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "allocation_figures": (
-            "ALPHAS",
-            "FRAME_COLUMNS",
-            "allocation_errorbars",
-            "allocation_frame",
-            "allocation_table",
-            "inside_fractions",
-            "keypoint_deviation_samples",
-            "plot_allocation",
-            "plot_keypoint_samples",
-        ),
-        "campaign": (
-            "Instance",
-            "ResultStore",
-            "Settings",
-            "grid",
-            "provenance",
-            "run_campaign",
-            "run_study",
-            "store_path",
-        ),
-        "comparison": (
-            "CONDITIONS",
-            "GRID_COLUMNS",
-            "PAPER_HARDWARE",
-            "compact_table",
-            "method_cells",
-            "plot_comparison",
-            "save_comparison",
-        ),
+        "allocation_figures": None,  # its __all__
+        "campaign": None,  # its __all__
+        "comparison": None,  # its __all__
         "heatmaps": (
             "backbone_heatmaps",
             "marginal_indicators",
@@ -58,16 +31,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "summarise_indicators",
             "symmetry_indicators",
         ),
-        "report": (
-            "COMPARED",
-            "SECTIONS",
-            "campaign_summary",
-            "compact_markdown",
-            "t_prob_readings",
-            "trend_markdown",
-            "trend_readings",
-            "write_report",
-        ),
+        "report": None,  # its __all__
         "reproduction": (
             "PROFILES",
             "STAGES",
@@ -75,39 +39,9 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "profile",
             "reproduce",
         ),
-        "table_runs": (
-            "TABLES",
-            "StudyTable",
-            "TableKind",
-            "run_table",
-        ),
-        "tables": (
-            "PAPER_T_GLOBAL",
-            "PAPER_T_LOCAL",
-            "PAPER_T_PROB",
-            "PAPER_T_RESNET",
-            "plot_pose_bounds",
-            "pose_bound_ratios",
-            "reading_comparison",
-            "summarise",
-            "t_global",
-            "t_local",
-            "t_prob",
-            "t_resnet",
-        ),
-        "trends": (
-            "STATEMENTS",
-            "Statement",
-            "Trend",
-            "describe",
-            "trend",
-            "trend_table",
-            "verdict",
-        ),
-        "vnncomp": (
-            "DTYPES",
-            "export_benchmark",
-            "instance_name",
-        ),
+        "table_runs": None,  # its __all__
+        "tables": None,  # its __all__
+        "trends": None,  # its __all__
+        "vnncomp": None,  # its __all__
     },
 )
