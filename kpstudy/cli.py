@@ -1,5 +1,6 @@
-"""Command line: ``python -m kpstudy reproduce|train|evaluate|campaign|export-benchmark``. Bad
-arguments exit with status 2 and a message naming the argument."""
+"""Command line: ``python -m kpstudy
+reproduce|compare|train|evaluate|campaign|export-benchmark``. Bad arguments exit with status
+2 and a message naming the argument."""
 
 from __future__ import annotations
 
@@ -58,6 +59,13 @@ def main(argv=None) -> int:
     from kpstudy.study.campaign import add_arguments
 
     default = TrainConfig()
+    cmp = sub.add_parser(
+        "compare",
+        help="what differs between two results folders of a profile (tables, timing "
+        "columns aside, and model weights); exit status 1 when anything does",
+    )
+    cmp.add_argument("a", help="a results folder, e.g. results/quick")
+    cmp.add_argument("b", help="another, e.g. a second run's")
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
     tr.add_argument(
@@ -202,6 +210,13 @@ def main(argv=None) -> int:
                 retrain_friendly=args.retrain_friendly,
             )
             print(f"results written to {out}")
+        elif args.command == "compare":
+            from kpstudy.study.reproduction import compare_results
+
+            found = compare_results(args.a, args.b)
+            for rel, what in found.items():
+                print(f"{rel}: {what}")
+            return int(any(what != "same" for what in found.values()))
         elif args.command == "train":
             _train(args)
         elif args.command == "evaluate":

@@ -9,7 +9,13 @@ import pandas as pd
 import pytest
 
 from kpstudy.study.report import SECTIONS
-from kpstudy.study.reproduction import NOTEBOOKS, PROFILES, profile, reproduce
+from kpstudy.study.reproduction import (
+    NOTEBOOKS,
+    PROFILES,
+    compare_results,
+    profile,
+    reproduce,
+)
 from kpstudy.study.tables import PAPER_T_PROB
 
 TINY = replace(
@@ -104,6 +110,16 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
 
 
 @pytest.mark.slow
+def test_a_second_run_gives_the_same_tables_and_models(run, tmp_path_factory):
+    """Two runs of a profile from scratch: every table cell (timing columns aside) and
+    every checkpoint's weights agree (before the tests below change ``run``)."""
+    again = reproduce(TINY, tmp_path_factory.mktemp("again"), progress=False)
+    found = compare_results(run, again)
+    assert {"tables/t_local_records.csv", "tables/t_global.csv", "models/cnn.pt"} <= set(found)
+    assert set(found.values()) == {"same"}, found
+
+
+@pytest.mark.slow
 def test_a_rerun_finds_every_stage_current(run, capsys):
     stamps = {p.name: p.read_text() for p in (run / "notebooks").glob("*.json")}
     reproduce(TINY, run.parent, progress=False)
@@ -175,3 +191,46 @@ def test_notebooks_in_git_are_stripped_and_parameterised(name):
     tagged = [c for c in code if "parameters" in c.metadata.get("tags", [])]
     assert len(tagged) == 1 and tagged[0] is code[0]
     assert "out = " in tagged[0].source
+
+
+def _results(root, **tables):
+    (root / "tables").mkdir(parents=True)
+    for name, text in tables.items():
+        (root / "tables" / f"{name}.csv").write_text(text)
+    return root
+
+
+def test_compare_results_names_what_differs_and_sets_timing_aside(tmp_path):
+    a = _results(
+        tmp_path / "a",
+        t="status,pb_time,capped\nholds,1.0,0\nunknown,2.0,0\n",
+        only_a="x\n1\n",
+        rows="x\n1\n",
+    )
+    b = _results(
+        tmp_path / "b",
+        t="status,pb_time,capped\nholds,7.5,0\nholds,300.0,1\n",
+        rows="x\n1\n2\n",
+    )
+    assert compare_results(a, b) == {
+        "tables/only_a.csv": "only in a",
+        "tables/rows.csv": "shape differs: (1, 1) against (2, 1)",
+        "tables/t.csv": "cells differ: status (1), capped (1)",
+    }
+    with pytest.raises(ValueError, match=r"^b: expected a results folder with tables/"):
+        compare_results(a, tmp_path / "missing")
+
+
+def test_compare_cli_exits_1_on_a_difference_and_2_on_bad_input(tmp_path, capsys):
+    from kpstudy.cli import main
+
+    a = _results(tmp_path / "a", t="status,time\nholds,1\n")
+    b = _results(tmp_path / "b", t="status,time\nholds,2\n")
+    c = _results(tmp_path / "c", t="status,time\nviolated,1\n")
+    assert main(["compare", str(a), str(b)]) == 0
+    assert main(["compare", str(a), str(c)]) == 1
+    assert capsys.readouterr().out.splitlines()[-1] == "tables/t.csv: cells differ: status (1)"
+    with pytest.raises(SystemExit) as exit_:
+        main(["compare", str(a), str(tmp_path / "none")])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err.strip().startswith("kpstudy compare: error: b: expected")

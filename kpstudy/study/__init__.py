@@ -36,6 +36,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "PROFILES",
             "STAGES",
             "Profile",
+            "compare_results",
             "profile",
             "reproduce",
         ),

@@ -303,6 +303,73 @@ def reproduce(
     return out
 
 
+def is_timing(column: str) -> bool:
+    """Whether a table column measures time (``time``, ``pb_time_mean``, ``seconds`` …):
+    the one thing two runs of a profile may differ in."""
+    return "time" in column or "seconds" in column
+
+
+def compare_results(a, b) -> dict[str, str]:
+    """What differs between two results folders of a profile (``results/<profile>``).
+
+    Compares every table (``tables/*.csv``) cell by cell, its timing columns
+    (:func:`is_timing`) aside, and every checkpoint's weights (``models/*.pt``): a
+    verdict that hangs on a time cap shows as a differing ``status``, ``stopped`` or
+    ``capped`` cell. Returns ``{path relative to the folder: 'same' or what differs}``
+    over the files of either folder.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     for run, seconds in (("a", 1.5), ("b", 9.0)):
+    ...         Path(tmp, run, "tables").mkdir(parents=True)
+    ...         _ = Path(tmp, run, "tables", "t.csv").write_text(f"status,time\\nholds,{seconds}")
+    ...     compare_results(Path(tmp, "a"), Path(tmp, "b"))
+    {'tables/t.csv': 'same'}
+    """
+    import pandas as pd
+
+    from kpstudy.models.training import load_checkpoint, weights_digest
+
+    roots = []
+    for name, root in (("a", a), ("b", b)):
+        root = Path(root)
+        if not (root / "tables").is_dir():
+            raise ValueError(f"{name}: expected a results folder with tables/, got {str(root)!r}")
+        roots.append(root)
+    files = sorted(
+        {
+            p.relative_to(root).as_posix()
+            for root in roots
+            for p in [*root.glob("tables/*.csv"), *root.glob("models/*.pt")]
+        }
+    )
+    out = {}
+    for rel in files:
+        pa, pb = (root / rel for root in roots)
+        if not (pa.is_file() and pb.is_file()):
+            out[rel] = f"only in {'a' if pa.is_file() else 'b'}"
+        elif rel.endswith(".pt"):
+            da, db = (weights_digest(load_checkpoint(p)[1]["model"]) for p in (pa, pb))
+            out[rel] = "same" if da == db else "weights differ"
+        else:
+            ta, tb = pd.read_csv(pa), pd.read_csv(pb)
+            if list(ta.columns) != list(tb.columns) or len(ta) != len(tb):
+                out[rel] = f"shape differs: {ta.shape} against {tb.shape}"
+                continue
+            cols = [c for c in ta.columns if not is_timing(c)]
+            ta, tb = (t[cols].astype(object).where(t[cols].notna(), "") for t in (ta, tb))
+            differs = (ta.astype(str) != tb.astype(str)).sum()
+            differs = differs[differs > 0]
+            out[rel] = (
+                "same"
+                if differs.empty
+                else "cells differ: " + ", ".join(f"{c} ({n})" for c, n in differs.items())
+            )
+    return out
+
+
 def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
     """The dataset and its perturbation sets under ``out/data``."""
     from data_gen.dataset import generate_dataset, load_coco
