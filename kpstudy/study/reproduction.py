@@ -187,17 +187,18 @@ class Profile:
 
 
 #: The quick profile's pose-bound method in T-local per model: the paper's CNN with
-#: forward bounds on the root (its zonotope decides no object hull in minutes:
-#: docs/findings.md), the verification-friendly CNN with the zonotope on the four nodes of
-#: the hull split twice. Node budgets give the same verdicts on any machine; the seconds
-#: only cap a slow one.
+#: forward bounds on the root (its zonotope proves m = 2 hulls, but in 25-400 s each with
+#: 16-67 nodes: docs/findings.md), the verification-friendly CNN with the zonotope on the
+#: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
+#: scale its bound term was trained on). Node budgets give the same verdicts on any
+#: machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
     "cnn_affine": dict(
         pose_bound_method="zonotope",
-        pose_bound_timeout=300.0,
-        pose_bound_nodes=4,
-        pose_bound_start_depth=2,
+        pose_bound_timeout=600.0,
+        pose_bound_nodes=16,
+        pose_bound_start_depth=4,
     ),
 }
 #: The same in T-global: the zonotope for both, up to 4 nodes per hull. A whole-hull node
