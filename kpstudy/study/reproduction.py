@@ -187,8 +187,8 @@ class Profile:
 
 
 #: The quick profile's pose-bound method in T-local per model: the paper's CNN with
-#: forward bounds on the root (its zonotope proves m = 2 hulls, but in 25-400 s each with
-#: 16-67 nodes: docs/findings.md), the verification-friendly CNN with the zonotope on the
+#: forward bounds on the root (its zonotope proves 3 of the 4 m = 2 hulls, but in 26-392 s
+#: each: docs/findings.md), the verification-friendly CNN with the zonotope on the
 #: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
 #: scale its bound term was trained on). Node budgets give the same verdicts on any
 #: machine; the seconds only cap a slow one.
