@@ -479,42 +479,73 @@ def run_campaign(
         instance that raised has ``status='error'``, ``error`` (the exception's type and
         message) and ``total_time`` (s) only.
     """
-    _check_settings(settings)
+    campaign = _Campaign.open(instances, store, settings, retry_errors)
+    _execute([campaign], workers=workers, scheduler=scheduler, progress=progress, on_record=on_record)
+    return campaign.store.frame(instances)
+
+
+@dataclass
+class _Campaign:
+    """One campaign's store, settings and the instances it still lacks."""
+
+    store: ResultStore
+    settings: Settings
+    missing: list[Instance]
+
+    @classmethod
+    def open(cls, instances, store, settings: Settings, retry_errors: bool = False) -> _Campaign:
+        """Check the settings and open the store with their provenance (a store made by
+        another is refused here, before any work)."""
+        _check_settings(settings)
+        path = store.path if isinstance(store, ResultStore) else store
+        store = ResultStore(path, provenance(settings))
+        done = store.keys(errors=not retry_errors)
+        return cls(store, settings, [i for i in dict.fromkeys(instances) if i.key not in done])
+
+
+def _execute(
+    campaigns: list[_Campaign],
+    *,
+    workers: int,
+    scheduler: str | None,
+    progress: bool,
+    on_record: Callable[[Instance, dict], None] | None = None,
+) -> None:
+    """Run the missing hulls of every campaign in one pool (or this process, or Dask),
+    storing each record in its campaign's store as it arrives. Hulls with the longest
+    pose-bound time cap go first, so that the pool's last tasks are short ones."""
     if isinstance(workers, bool) or int(workers) != workers or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
         raise ValueError(f"scheduler: expected a Dask scheduler address, got {scheduler!r}")
-    path = store.path if isinstance(store, ResultStore) else store
-    store = ResultStore(path, provenance(settings))
-    done = store.keys(errors=not retry_errors)
-    missing = [i for i in dict.fromkeys(instances) if i.key not in done]
-    client = _client(scheduler) if scheduler is not None and missing else None
-    bar = tqdm(total=len(missing), desc="instances", unit="inst", disable=not progress)
+    tasks = [(c, group) for c in campaigns for group in _by_hull(c.missing)]
+    tasks.sort(key=lambda task: -(task[0].settings.pose_bound_timeout or 0.0))
+    client = _client(scheduler) if scheduler is not None and tasks else None
+    bar = tqdm(total=sum(len(g) for _, g in tasks), desc="instances", unit="inst", disable=not progress)
 
-    def finish(instance, record):
-        store.put(instance, record)
-        bar.update()
-        if on_record is not None:
-            on_record(instance, record)
+    def finish(task, records):
+        campaign, group = task
+        for instance, record in zip(group, records):
+            campaign.store.put(instance, record)
+            bar.update()
+            if on_record is not None:
+                on_record(instance, record)
 
     try:
-        if not missing:
+        if not tasks:
             pass
         elif client is not None:
             from distributed import as_completed as dask_completed
 
             with client:
                 futures = {
-                    client.submit(_attempt_hull, g, settings, pure=False): g
-                    for g in _by_hull(missing)
+                    client.submit(_attempt_hull, g, c.settings, pure=False): (c, g) for c, g in tasks
                 }
                 for future in dask_completed(futures):
-                    for instance, record in zip(futures[future], future.result()):
-                        finish(instance, record)
+                    finish(futures[future], future.result())
         elif workers == 1:
-            for group in _by_hull(missing):
-                for instance, record in zip(group, _attempt_hull(group, settings)):
-                    finish(instance, record)
+            for task in tasks:
+                finish(task, _attempt_hull(task[1], task[0].settings))
         else:
             threads = max(1, (os.cpu_count() or 1) // int(workers))
             with _sigterm_exits():
@@ -525,19 +556,15 @@ def run_campaign(
                     initargs=(threads, os.getpid()),
                 )
                 try:
-                    futures = {
-                        pool.submit(_attempt_hull, g, settings): g for g in _by_hull(missing)
-                    }
+                    futures = {pool.submit(_attempt_hull, g, c.settings): (c, g) for c, g in tasks}
                     for future in as_completed(futures):
-                        for instance, record in zip(futures[future], future.result()):
-                            finish(instance, record)
+                        finish(futures[future], future.result())
                     pool.shutdown()
                 except BaseException:  # Ctrl-C, SIGTERM, a failed store: no worker outlives it
                     _stop(pool)
                     raise
     finally:
         bar.close()
-    return store.frame(instances)
 
 
 def _client(scheduler: str):
@@ -620,7 +647,9 @@ def run_study(
     **settings,
 ) -> pd.DataFrame:
     """Every campaign of one study table: each model × tolerance reading × kind, one
-    resumable store each (:func:`store_path` under ``folder``).
+    resumable store each (:func:`store_path` under ``folder``). Their hulls share one
+    pool of ``workers`` (started once; a worker keeps the models and allocations it has
+    loaded), the hulls with the longest pose-bound time cap first.
 
     Parameters
     ----------
@@ -652,7 +681,7 @@ def run_study(
     readings = list(tolerance_units)
     if not readings:
         raise ValueError("tolerance_units: expected one or more readings, got none")
-    frames = []
+    campaigns, labels = [], []
     for model, checkpoint in checkpoints.items():
         for units in readings:
             extra = (pose_bound or {}).get(model, {}) if units == readings[0] else {}
@@ -661,15 +690,11 @@ def run_study(
             )
             for kind in kinds:
                 instances = grid(data_dir, kind, **grid_options)
-                frame = run_campaign(
-                    instances,
-                    store_path(folder, kind, config),
-                    config,
-                    workers=workers,
-                    scheduler=scheduler,
-                    progress=progress,
-                )
-                frames.append(frame.assign(model=model, tolerance_units=units))
+                store = store_path(folder, kind, config)
+                campaigns.append((_Campaign.open(instances, store, config), instances))
+                labels.append(dict(model=model, tolerance_units=units))
+    _execute([c for c, _ in campaigns], workers=workers, scheduler=scheduler, progress=progress)
+    frames = [c.store.frame(i).assign(**label) for (c, i), label in zip(campaigns, labels)]
     return pd.concat(frames, ignore_index=True)
 
 
