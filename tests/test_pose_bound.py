@@ -8,8 +8,10 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices
+from kpstudy.certify import pose_bound_method as pb
 from kpstudy.certify.allocation_method import certify, target_pose_errors
 from kpstudy.certify.pose_bound_method import linearised_bound
+from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.preprocess import to_model_input
 from kpstudy.models.training import load_checkpoint
 from kpstudy.pose.allocation import allocate_tolerances
@@ -132,6 +134,7 @@ def test_a_node_budget_gives_the_same_regions_whatever_the_time(study):  # noqa:
     budget = dict(check_samples=0, pose_bound_nodes=3, pose_bound_start_depth=2)
     first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=CAP, **budget)
     assert 1 <= first["pb_nodes"] <= 3 and first["pb_stopped"] in ("nodes", None)
+    assert first["pb_refined"] == 0  # no second search unless asked for
     again = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=300, **budget)
     for key in ("pb_status", "pb_pixels", "pb_bound", "pb_nodes", "pb_stopped"):
         assert again[key] == first[key]
@@ -152,3 +155,28 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
     errors = target_pose_errors(backbone, hull.image(lam[None]), seed, R, t)[0]
     assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ
+
+
+def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: F811
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
+    hull = ConvexHull(to_model_input(vertices, size=backbone.input_size))
+    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
+    pose = pb.HullPoseBound(
+        backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, max_nodes=1, refine_nodes=6
+    )
+    first, _ = pb._search_regions(backbone, hull, pose.centers, 1, pose.search)
+    # Every unreached cell in focus: the second search may split wherever the first left one.
+    focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
+    merged, pixels = pose._refined(first, focus)
+    assert 1 < merged.nodes <= first.nodes + 6
+    for before, after in zip(first.possible, merged.possible):
+        assert set(after.tolist()) <= set(before.tolist())
+    lam = torch.cat([hull.sample(256, 0), hull.sample(64, 1, "vertices")]).to(torch.float32)
+    with torch.no_grad():
+        argmax = argmax_keypoints(backbone(hull.image(lam)))  # (B, K, 2) heatmap (u, v)
+    for k, region in enumerate(pixels):
+        kept = {tuple(p) for p in region.astype(int).tolist()}
+        assert {tuple(p) for p in argmax[:, k].long().tolist()} <= kept

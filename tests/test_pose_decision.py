@@ -479,3 +479,32 @@ def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
     records.loc[4, "pb_status"] = None  # an instance the pose-bound method did not run
     row = tables.t_global(records).iloc[0]
     assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1
+
+
+def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tolerance(scene):
+    seed, R, t, factors, centers = scene
+    eps, _ = _far_tolerance(scene)
+    centers = centers.astype(np.int64)
+    pooling = pb._pooling(centers, 1, HM)
+    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pooling]
+    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
+    far = centers[0] + [8, 0]
+    possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
+    possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
+    # The seed reaches every keypoint's rounded pixel (a witness at λ = 0).
+    seed_lam = torch.zeros(1, dtype=torch.float64)
+    witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
+    regions = types.SimpleNamespace(possible=possible, witnesses=witnesses)
+    pixels = pb.region_pixels(regions, pooling, HM)
+    assert pixels[0].tolist() == [centers[0].tolist(), far.tolist()]
+    # Only the combination with keypoint 0 at ``far`` leaves Ξ; every pixel in it is involved.
+    positions = [to_image_pixels(p, factors) for p in pixels]
+    _, farthest, involved = pb._enumerate(seed, positions, R, t, eps)
+    assert involved[0].tolist() == [False, True] and all(m.all() for m in involved[1:])
+    assert farthest.tolist() == [1] + [0] * (len(centers) - 1)
+    # Of those, only ``far`` has no witness: the one cell a split may remove.
+    focus = pb._focus(regions, pooling, HM, involved)
+    assert focus[0].tolist() == [cell(0, *far)] and not any(len(f) for f in focus[1:])
+    # A cell some image is known to reach is a fact, not a split's target.
+    regions.witnesses[0][cell(0, *far)] = torch.ones(1, dtype=torch.float64)
+    assert not any(len(f) for f in pb._focus(regions, pooling, HM, involved))

@@ -136,6 +136,36 @@ def test_a_search_started_below_the_root_stays_sound_when_its_budget_runs_out():
         assert set(y[:, g].tolist()) <= set(regions.possible[g].tolist())
 
 
+def test_a_focused_search_splits_only_for_the_indices_it_is_given():
+    hull = ConvexHull(torch.tensor([[0.0], [1.0]], dtype=torch.float64))
+    budget = dict(samples=0, max_nodes=NODES, timeout=CAP)
+    # Nothing in focus: the root closes at once and keeps what it cannot beat there.
+    idle = reachable_argmax(Segment(), hull, [4, 2], focus=[[], []], **budget)
+    assert idle.nodes == 1 and {0, 1, 2} <= set(idle.possible[0].tolist())
+    # Index 2 of group 0 (0.2, never the argmax) in focus: splits remove it.
+    aimed = reachable_argmax(Segment(), hull, [4, 2], focus=[[2], []], **budget)
+    whole = reachable_argmax(Segment(), hull, [4, 2], **budget)
+    assert 2 not in aimed.possible[0] and 1 < aimed.nodes <= whole.nodes
+    for g in range(2):  # still sound: every index the whole search keeps is kept
+        assert set(whole.possible[g].tolist()) <= set(aimed.possible[g].tolist())
+    with pytest.raises(ValueError, match="^focus"):
+        reachable_argmax(Segment(), hull, [4, 2], focus=[[4], []], **budget)
+    with pytest.raises(ValueError, match="^focus"):
+        reachable_argmax(Segment(), hull, [4, 2], focus=[[0]], **budget)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_focused_search_is_sound(seed):
+    model = MixedNet(seed)
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5))
+    focus = [[seed % 3], [0, 2]]
+    regions = reachable_argmax(
+        model, hull, [3, 3], method="zonotope", focus=focus, max_nodes=NODES, timeout=CAP
+    )
+    sampled = sampled_argmax(model, hull, [3, 3])
+    assert all(s <= set(p.tolist()) for s, p in zip(sampled, regions.possible))
+
+
 def test_bad_input_is_named():
     model = MixedNet(0)
     hull = ConvexHull(hull_vertices(0, 2, (2, 8, 8)))

@@ -294,6 +294,7 @@ def certify_cells(
     pose_bound_method: str = "forward",
     pose_bound_nodes: int | None = None,
     pose_bound_start_depth: int = 0,
+    pose_bound_refine_nodes: int = 0,
     tolerance_units: str = "heatmap",
 ) -> dict:
     """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell,
@@ -326,6 +327,9 @@ def certify_cells(
         Its node budget (``None``: the seconds alone) and the hull's splits before the
         first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
         ``start_depth``).
+    pose_bound_refine_nodes : int
+        Its second, focused search where the enumeration leaves combinations outside Ξ
+        (:class:`~kpstudy.certify.pose_bound_method.HullPoseBound`'s ``refine_nodes``).
 
     Returns
     -------
@@ -393,6 +397,7 @@ def certify_cells(
                     method=pose_bound_method,
                     max_nodes=pose_bound_nodes,
                     start_depth=pose_bound_start_depth,
+                    refine_nodes=pose_bound_refine_nodes,
                     sample_seed=sample_seed,
                 )
             record.update(shared.decide(instance.xi, kappa))

@@ -179,9 +179,11 @@ def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) ->
     return _enumerate(seed, keypoints, R, t, np.ones(6), chunk)[0]
 
 
-def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`enumerated_pose_error` and the combination (one index per keypoint) whose
-    error is farthest outside ``eps (6,)`` (the largest ``max_i error_i / eps_i``)."""
+def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple:
+    """:func:`enumerated_pose_error`, the combination (one index per keypoint) whose
+    error is farthest outside ``eps (6,)`` (the largest ``max_i error_i / eps_i``) and,
+    per keypoint, which of its pixels ``(n_k,)`` bool take part in a combination outside
+    ``eps``."""
     chunk = ENUMERATION_CHUNK if chunk is None else chunk
     if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
         raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
@@ -192,6 +194,7 @@ def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple[np.ndarray, np.n
     sizes = tuple(len(p) for p in points)
     total = math.prod(sizes)
     worst, farthest, where = np.zeros(6), -1.0, 0
+    involved = [np.zeros(n, dtype=bool) for n in sizes]
     for begin in range(0, total, int(chunk)):
         index = np.unravel_index(np.arange(begin, min(begin + int(chunk), total)), sizes)
         V = np.stack([p[i] for p, i in zip(points, index)], axis=1)  # (B, K, 2)
@@ -200,7 +203,10 @@ def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple[np.ndarray, np.n
         ratio = (errors / eps).max(1)
         if ratio.max() > farthest:
             farthest, where = float(ratio.max()), begin + int(ratio.argmax())
-    return worst, np.array(np.unravel_index(where, sizes))
+        outside = ~inside_tolerance(errors, eps)
+        for mask, i in zip(involved, index):
+            mask[i[outside]] = True
+    return worst, np.array(np.unravel_index(where, sizes)), involved
 
 
 def pose_bound(backbone, hull, seed, R, t, M, eps, *, kappa: float = 1.0, **search) -> dict:
@@ -257,6 +263,11 @@ class HullPoseBound:
     start_depth : int
         Splits of the hull before the first bounds
         (:func:`kpstudy.verify.reachable_argmax`).
+    refine_nodes : int
+        Where the enumeration leaves combinations outside Ξ that no image was found to
+        reach, a second search of this many nodes (same method, timeout and start depth)
+        splits only the nodes that keep a pixel of such a combination without a witness,
+        and the enumeration is repeated on the smaller regions (0: none).
     random_corners : int
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
@@ -277,6 +288,7 @@ class HullPoseBound:
         method: str = "forward",
         max_nodes: int | None = None,
         start_depth: int = 0,
+        refine_nodes: int = 0,
         random_corners: int = 64,
         sample_seed: int = 0,
     ) -> None:
@@ -286,14 +298,18 @@ class HullPoseBound:
         self.backbone, self.hull, self.seed, self.R, self.t = backbone, hull, seed, R, t
         self.M, self.stride, self.method = M, int(stride), method
         self.random_corners, self.sample_seed = random_corners, sample_seed
+        if isinstance(refine_nodes, bool) or int(refine_nodes) != refine_nodes or refine_nodes < 0:
+            raise ValueError(f"refine_nodes: expected an integer >= 0, got {refine_nodes!r}")
         self.search = dict(
             method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth
         )
+        self.refine = int(refine_nodes)
         hm = backbone.heatmap_size
         self.factors = scale_factors(seed.image_size, hm)
         self.V = np.asarray(seed.keypoints, dtype=np.float64)
         centers = np.rint(to_input_pixels(self.V, self.factors))
         self.centers = np.clip(centers, 0, hm - 1).astype(np.int64)
+        self.pooling = _pooling(self.centers, self.stride, hm)
         self._errors: dict = {}  # λ digest → argmax pose errors (6,)
         self._made: dict = {}  # shared step → (value, seconds)
         self._model64 = None
@@ -324,7 +340,8 @@ class HullPoseBound:
             were enumerated, else None; ``pb_nonlinear`` (6: the largest PnP pose error
             found at region corners; ``inf`` if PnP flags a corner's pose as not valid);
             ``pb_time`` (s; the shared steps this cell used, the search, the enumeration
-            and the attack, each counted in full, as if it ran alone); ``pb_nodes``;
+            and the attack, each counted in full, as if it ran alone); ``pb_nodes``
+            (with the refinement's); ``pb_refined`` (the refinement's nodes, 0 if none);
             ``pb_stopped`` (what ended the search early: ``'nodes'``, ``'time'``,
             ``'witness'`` when the seed, a vertex or a random image of the hull was
             already a counterexample and no node was bounded, or None); ``pb_complete``
@@ -334,7 +351,6 @@ class HullPoseBound:
         """
         start, self._spent = time.perf_counter(), 0.0
         eps = np.asarray(eps, dtype=np.float64)
-        seed, R, t = self.seed, self.R, self.t
         seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
         seed_inside = bool(inside_tolerance(self._argmax_errors(seed_lam)[0], eps).all())
         # Witnesses first: the seed, the hull's corners and random images. One whose argmax
@@ -351,6 +367,41 @@ class HullPoseBound:
                     self.backbone, self.hull, self.centers, self.stride, self.search
                 ),
             )
+        verdict = self._judge(eps, kappa, regions, pixels, early)
+        refined = 0
+        if verdict["rule"] == "enumeration" and verdict["status"] == "unknown" and self.refine:
+            focus = _focus(regions, self.pooling, self.backbone.heatmap_size, verdict["involved"])
+            if any(len(f) for f in focus):
+                regions, pixels = self._shared(
+                    ("refine", digest(*focus)), lambda: self._refined(regions, focus)
+                )
+                refined = regions.nodes - verdict["nodes"]
+                verdict = self._judge(eps, kappa, regions, pixels, None)
+        return {
+            "pb_status": verdict["status"],
+            "pb_rule": verdict["rule"],
+            "pb_seed_inside": seed_inside,
+            "pb_bound": verdict["bound"].tolist(),
+            "pb_combinations": verdict["combinations"],
+            "pb_exact": None if verdict["exact"] is None else verdict["exact"].tolist(),
+            "pb_nonlinear": verdict["nonlinear"].tolist(),
+            "pb_time": self._spent + time.perf_counter() - start,
+            "pb_nodes": regions.nodes,
+            "pb_refined": refined,
+            "pb_stopped": "witness" if skipped else regions.stats["stopped"],
+            "pb_complete": regions.complete,
+            "pb_pixels": [len(p) for p in pixels],
+            "pb_counterexample": verdict["counterexample"],
+            "pb_stride": self.stride,
+            "pb_method": self.method,
+        }
+
+    def _judge(self, eps, kappa, regions, pixels, early) -> dict:
+        """The verdict on Ξ (``eps``) from the regions' ``pixels``: ``status``, ``rule``,
+        ``counterexample``, ``bound``, ``combinations``, ``exact``, ``nonlinear``,
+        ``involved`` (per keypoint, its pixels in a combination outside Ξ, when
+        enumerated) and ``nodes`` (the regions')."""
+        seed, R, t = self.seed, self.R, self.t
         positions = [to_image_pixels(p, self.factors) for p in pixels]  # (n_k, 2) image px
         deviations = [p - v for p, v in zip(positions, self.V)]
         bound, extremes = linearised_bound(self.M, deviations)
@@ -369,14 +420,14 @@ class HullPoseBound:
         if early is None:
             points = [lam for w in regions.witnesses for lam in w.values()]
             early = self._outside(eps, points) if points else None
-        exact = None
+        exact = involved = None
         if early is not None:
             status, rule, counterexample = "violated", "witness", early
         elif combinations <= MAX_COMBINATIONS:
             # Exact over the product of the regions; a combination outside Ξ keeps it
             # open, whatever the linearised bound says.
-            exact, farthest = self._shared(
-                ("enumeration", eps.tobytes()),
+            exact, farthest, involved = self._shared(
+                ("enumeration", eps.tobytes(), digest(*pixels)),
                 lambda: _enumerate(seed, positions, R, t, eps),
             )
             inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
@@ -388,23 +439,41 @@ class HullPoseBound:
             found = self._attack(eps, regions, pixels, farthest)
             if found is not None:
                 status, rule, counterexample = "violated", "witness", found
-        return {
-            "pb_status": status,
-            "pb_rule": rule,
-            "pb_seed_inside": seed_inside,
-            "pb_bound": bound.tolist(),
-            "pb_combinations": combinations if combinations <= 2**53 else float(combinations),
-            "pb_exact": None if exact is None else exact.tolist(),
-            "pb_nonlinear": nonlinear.tolist(),
-            "pb_time": self._spent + time.perf_counter() - start,
-            "pb_nodes": regions.nodes,
-            "pb_stopped": "witness" if skipped else regions.stats["stopped"],
-            "pb_complete": regions.complete,
-            "pb_pixels": [len(p) for p in pixels],
-            "pb_counterexample": counterexample,
-            "pb_stride": self.stride,
-            "pb_method": self.method,
-        }
+        return dict(
+            status=status,
+            rule=rule,
+            counterexample=counterexample,
+            bound=bound,
+            combinations=combinations if combinations <= 2**53 else float(combinations),
+            exact=exact,
+            nonlinear=nonlinear,
+            involved=involved,
+            nodes=regions.nodes,
+        )
+
+    def _refined(self, regions, focus) -> tuple:
+        """The regions after a second search of :attr:`refine` nodes that splits only
+        where a pixel of ``focus`` (per keypoint, cell indices) has no witness yet; its
+        possible sets intersect the first search's (both are sound) and its witnesses
+        join them. Returns the merged :class:`Regions` and their pixels."""
+        search = dict(self.search, max_nodes=self.refine)
+        second, _ = _search_regions(
+            self.backbone, self.hull, self.centers, self.stride, search, focus=focus
+        )
+        witnesses = [{**b, **a} for a, b in zip(regions.witnesses, second.witnesses)]
+        possible = [
+            np.union1d(np.intersect1d(a, b), np.array(sorted(w), dtype=np.int64))
+            for a, b, w in zip(regions.possible, second.possible, witnesses)
+        ]
+        merged = Regions(
+            regions.group_sizes,
+            possible,
+            witnesses,
+            regions.time + second.time,
+            regions.nodes + second.nodes,
+            dict(second.stats),
+        )
+        return merged, region_pixels(merged, self.pooling, self.backbone.heatmap_size)
 
     def _shared(self, key, make):
         """``make()``'s value, made once per hull; ``decide``'s ``pb_time`` counts its
@@ -480,15 +549,44 @@ class HullPoseBound:
         return None
 
 
-def _search_regions(backbone, hull, centers, stride: int, search: dict):
+def _pooling(centers, stride: int, heatmap_size: int):
+    """The stride-``stride`` cells around ``centers (K, 2)`` the region search bounds."""
+    half = np.full_like(centers, (stride - 1) // 2)
+    return keypoint_pooling(centers, half, (heatmap_size, heatmap_size))
+
+
+def _search_regions(backbone, hull, centers, stride: int, search: dict, focus=None):
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords; the :class:`Regions` and each keypoint's pixels ``(n_k, 2)``."""
+    keywords and ``focus``; the :class:`Regions` and each keypoint's pixels ``(n_k, 2)``."""
     hm = backbone.heatmap_size
-    pooling = keypoint_pooling(centers, np.full_like(centers, (stride - 1) // 2), (hm, hm))
+    pooling = _pooling(centers, stride, hm)
     proxy = build_proxy(backbone, pooling, centers).eval()
-    regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, **search)
+    regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, focus=focus, **search)
     return regions, region_pixels(regions, pooling, hm)
+
+
+def _focus(regions, pooling, heatmap_size: int, involved) -> list[np.ndarray]:
+    """Per keypoint, its possible cells (indices of ``regions.possible[k]``'s group) that
+    hold a pixel of ``involved[k]`` (bool over :func:`region_pixels`' pixels) and have no
+    witness: the cells a further split may remove."""
+    out = []
+    pixels = region_pixels(regions, pooling, heatmap_size)
+    for k, (horizontal, vertical) in enumerate(pooling):
+        bad = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
+        u, v = pixels[k][involved[k]].astype(np.int64).T
+        bad[u, v] = True
+        n_h = num_cells(horizontal, heatmap_size)
+        cells = []
+        for c in np.asarray(regions.possible[k], dtype=np.int64):
+            (u0, u1), (v0, v1) = (
+                cell_bounds(c % n_h, horizontal, heatmap_size),
+                cell_bounds(c // n_h, vertical, heatmap_size),
+            )
+            if c not in regions.witnesses[k] and bad[u0 : u1 + 1, v0 : v1 + 1].any():
+                cells.append(int(c))
+        out.append(np.array(cells, dtype=np.int64))
+    return out
 
 
 def _grid(heatmap_size: int) -> np.ndarray:

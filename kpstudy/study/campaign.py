@@ -115,6 +115,8 @@ class Settings:
     pose_bound_nodes, pose_bound_start_depth :
         Its node budget per hull (``None``: the seconds alone decide; with a budget the
         seconds only cap a slow machine) and the hull's splits before the first bounds.
+    pose_bound_refine_nodes :
+        Its focused second search (0: none).
     tolerance_units : {'heatmap', 'paper'}
         How the allocation method reads its tolerances
         (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`); the pose-bound method has none.
@@ -143,6 +145,11 @@ class Settings:
     )
     pose_bound_start_depth: int = _setting(
         0, "splits of each hull before the pose-bound method's first bounds"
+    )
+    pose_bound_refine_nodes: int = _setting(
+        0,
+        "nodes of a second pose-bound search that splits only where a combination outside "
+        "the tolerance box has no witness (0: none)",
     )
     tolerance_units: str = _setting(
         "heatmap",
@@ -480,7 +487,9 @@ def run_campaign(
         message) and ``total_time`` (s) only.
     """
     campaign = _Campaign.open(instances, store, settings, retry_errors)
-    _execute([campaign], workers=workers, scheduler=scheduler, progress=progress, on_record=on_record)
+    _execute(
+        [campaign], workers=workers, scheduler=scheduler, progress=progress, on_record=on_record
+    )
     return campaign.store.frame(instances)
 
 
@@ -521,7 +530,9 @@ def _execute(
     tasks = [(c, group) for c in campaigns for group in _by_hull(c.missing)]
     tasks.sort(key=lambda task: -(task[0].settings.pose_bound_timeout or 0.0))
     client = _client(scheduler) if scheduler is not None and tasks else None
-    bar = tqdm(total=sum(len(g) for _, g in tasks), desc="instances", unit="inst", disable=not progress)
+    bar = tqdm(
+        total=sum(len(g) for _, g in tasks), desc="instances", unit="inst", disable=not progress
+    )
 
     def finish(task, records):
         campaign, group = task
@@ -539,7 +550,8 @@ def _execute(
 
             with client:
                 futures = {
-                    client.submit(_attempt_hull, g, c.settings, pure=False): (c, g) for c, g in tasks
+                    client.submit(_attempt_hull, g, c.settings, pure=False): (c, g)
+                    for c, g in tasks
                 }
                 for future in dask_completed(futures):
                     finish(futures[future], future.result())
@@ -831,7 +843,7 @@ def _check_settings(settings: Settings) -> None:
     stride = settings.pose_bound_stride
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
         raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
-    for name in ("check_samples", "hull_seed"):
+    for name in ("check_samples", "hull_seed", "pose_bound_refine_nodes"):
         value = getattr(settings, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")

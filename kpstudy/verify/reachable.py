@@ -102,6 +102,7 @@ def reachable_argmax(
     seed: int = 0,
     tol: float = 1e-5,
     memory: int = 2**25,
+    focus=None,
 ) -> Regions:
     """Sound sets of the indices each output group's argmax can take over ``input_set``.
 
@@ -138,6 +139,10 @@ def reachable_argmax(
         ``tol · (1 + max |y(X0)|)`` (float32 rounding never drops a reachable index).
     memory : int
         Element budget of the largest bound tensor.
+    focus : sequence of array_like of int, optional
+        Per group, the indices worth a split: a node stays open only while it keeps one
+        of them without a witness (default: every index). The possible sets stay sound;
+        the budget goes to the nodes that hold the indices a caller needs removed.
 
     Returns
     -------
@@ -180,6 +185,15 @@ def reachable_argmax(
     search = _Reach(
         model, graph, input_set, sizes, method, min(candidates, S), tol, start + timeout
     )
+    if focus is not None:
+        if len(focus) != G:
+            raise ValueError(f"focus: expected {G} index arrays (one per group), got {len(focus)}")
+        search.focus = torch.zeros(G, S, dtype=torch.bool)
+        for g, indices in enumerate(focus):
+            indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+            if indices.size and (indices.min() < 0 or indices.max() >= sizes[g]):
+                raise ValueError(f"focus: group {g}'s indices must lie in [0, {sizes[g]})")
+            search.focus[g, torch.from_numpy(indices)] = True
     if batch is None:
         widest = G * S * (candidates + 2)
         batch = default_batch(graph, input_set, method == "zonotope", memory, widest)
@@ -251,6 +265,7 @@ class _Reach:
         self.flat = torch.where(self.valid, torch.tensor(offsets)[:, None] + within, 0)
         self.uniform = bool(self.valid.all())  # equal groups: the layout is a view
         self.reached = torch.zeros(self.G, self.S, dtype=torch.bool)
+        self.focus = self.valid.clone()  # indices whose lack of a witness keeps a node open
         #: Indices undominated in some node closed so far ``(G, S)``.
         self.possible = torch.zeros(self.G, self.S, dtype=torch.bool)
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
@@ -271,10 +286,11 @@ class _Reach:
         """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: witnesses at the
         nodes' centres, then the indices still possible ``(B, G, S)`` in each node (those
         of its ``parent`` not provably beaten); a node stays open while it keeps an index
-        without a witness, and a closed node's indices join :attr:`possible`."""
+        of :attr:`focus` without a witness, and a closed node's indices join
+        :attr:`possible`."""
         self.witness(self.set.node_points(nodes)[:, -1])  # the centres
         kept = self.undominated(nodes) & parent
-        open_ = (kept & ~self.reached).flatten(1).any(1)
+        open_ = (kept & ~self.reached & self.focus).flatten(1).any(1)
         self.possible |= kept[~open_].any(0)
         return Step(kept, open_)
 
