@@ -190,8 +190,9 @@ class Profile:
 #: forward bounds on the root (its zonotope proves 3 of the 4 m = 2 hulls, but in 26-392 s
 #: each: docs/findings.md), the verification-friendly CNN with the zonotope on the
 #: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
-#: scale its bound term was trained on). Node budgets give the same verdicts on any
-#: machine; the seconds only cap a slow one.
+#: scale its bound term was trained on), then up to 48 nodes aimed at the cells that keep
+#: an enumerated combination outside Ξ open (one hull needs 36). Node budgets give the
+#: same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
     "cnn_affine": dict(
@@ -199,6 +200,7 @@ LOCAL_POSE_BOUND = {
         pose_bound_timeout=600.0,
         pose_bound_nodes=16,
         pose_bound_start_depth=4,
+        pose_bound_refine_nodes=48,
     ),
 }
 #: The same in T-global: the zonotope for both, up to 4 nodes per hull. A whole-hull node
