@@ -103,16 +103,24 @@ def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
     each keypoint that the regions' proxy used; a cell contributes all its real pixels.
     """
     out = []
-    for k, (horizontal, vertical) in enumerate(pooling):
-        n_h, n_v = num_cells(horizontal, heatmap_size), num_cells(vertical, heatmap_size)
-        u_bounds = np.array([cell_bounds(i, horizontal, heatmap_size) for i in range(n_h)])
-        v_bounds = np.array([cell_bounds(i, vertical, heatmap_size) for i in range(n_v)])
-        cells = np.asarray(regions.possible[k], dtype=np.int64)
+    for k, pair in enumerate(pooling):
         mask = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
-        for (u0, u1), (v0, v1) in zip(u_bounds[cells % n_h], v_bounds[cells // n_h]):
+        for u0, u1, v0, v1 in _cell_boxes(regions.possible[k], pair, heatmap_size):
             mask[u0 : u1 + 1, v0 : v1 + 1] = True
         out.append(np.argwhere(mask).astype(np.float64).reshape(-1, 2))  # sorted by (u, v)
     return out
+
+
+def _cell_boxes(cells, pair, heatmap_size: int) -> np.ndarray:
+    """First and last real pixel ``(u0, u1, v0, v1)`` of each of ``cells`` (indices of the
+    grid of the (horizontal, vertical) :class:`kpstudy.models.pooling.PoolParams` ``pair``),
+    ``(len(cells), 4)``."""
+    horizontal, vertical = pair
+    n_h, n_v = num_cells(horizontal, heatmap_size), num_cells(vertical, heatmap_size)
+    u_bounds = np.array([cell_bounds(i, horizontal, heatmap_size) for i in range(n_h)])
+    v_bounds = np.array([cell_bounds(i, vertical, heatmap_size) for i in range(n_v)])
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+    return np.concatenate([u_bounds[cells % n_h], v_bounds[cells // n_h]], axis=1)
 
 
 def linearised_bound(M, deviations) -> tuple[np.ndarray, np.ndarray]:
@@ -572,20 +580,22 @@ def _focus(regions, pooling, heatmap_size: int, involved) -> list[np.ndarray]:
     witness: the cells a further split may remove."""
     out = []
     pixels = region_pixels(regions, pooling, heatmap_size)
-    for k, (horizontal, vertical) in enumerate(pooling):
+    for k, pair in enumerate(pooling):
         bad = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
         u, v = pixels[k][involved[k]].astype(np.int64).T
         bad[u, v] = True
-        n_h = num_cells(horizontal, heatmap_size)
-        cells = []
-        for c in np.asarray(regions.possible[k], dtype=np.int64):
-            (u0, u1), (v0, v1) = (
-                cell_bounds(c % n_h, horizontal, heatmap_size),
-                cell_bounds(c // n_h, vertical, heatmap_size),
+        cells = np.asarray(regions.possible[k], dtype=np.int64)
+        boxes = _cell_boxes(cells, pair, heatmap_size)
+        out.append(
+            np.array(
+                [
+                    int(c)
+                    for c, (u0, u1, v0, v1) in zip(cells, boxes)
+                    if c not in regions.witnesses[k] and bad[u0 : u1 + 1, v0 : v1 + 1].any()
+                ],
+                dtype=np.int64,
             )
-            if c not in regions.witnesses[k] and bad[u0 : u1 + 1, v0 : v1 + 1].any():
-                cells.append(int(c))
-        out.append(np.array(cells, dtype=np.int64))
+        )
     return out
 
 
