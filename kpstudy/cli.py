@@ -88,6 +88,11 @@ def main(argv=None) -> int:
         "--schedule", default=default.schedule, help="onecycle (default) or constant learning rate"
     )
     tr.add_argument(
+        "--precision",
+        default=default.precision,
+        help="forward pass of the natural loss: float32 (default) or bfloat16 (autocast)",
+    )
+    tr.add_argument(
         "--init",
         dest="init_checkpoint",
         help="start from this checkpoint's weights (a fine-tuning stage)",

@@ -15,6 +15,7 @@ from kpstudy.models.evaluation import evaluate, inside, pose_errors
 from kpstudy.models.preprocess import resize_to_input, scale_factors, to_input_pixels
 from kpstudy.models.training import (
     TrainConfig,
+    config_of,
     heatmap_loss,
     heatmap_targets,
     load_checkpoint,
@@ -146,6 +147,26 @@ def test_bad_config_is_named():
         TrainConfig(epochs=0)
     with pytest.raises(ValueError, match="sigma: expected a positive number"):
         TrainConfig(sigma=0.0)
+    with pytest.raises(ValueError, match="precision: expected one of"):
+        TrainConfig(precision="float16")
+
+
+def test_a_bfloat16_run_trains_float32_weights(checkpoint, tiny_dataset, tmp_path):
+    config = TrainConfig(**(vars(TINY) | {"precision": "bfloat16"}))
+    state = train(tiny_dataset, tmp_path / "bf16.pt", config, progress=False)
+    losses = [row["loss"] for row in state["history"]]
+    assert losses[-1] < losses[0]
+    float32 = torch.load(checkpoint, weights_only=True)["model"]
+    assert all(v.dtype == float32[k].dtype for k, v in state["model"].items())
+    assert any(not torch.equal(v, float32[k]) for k, v in state["model"].items())
+    backbone, loaded = load_checkpoint(tmp_path / "bf16.pt")
+    assert loaded["config"]["precision"] == "bfloat16"
+
+
+def test_a_checkpoint_from_before_precision_reads_as_float32(checkpoint):
+    state = torch.load(checkpoint, weights_only=True)
+    del state["config"]["precision"]
+    assert config_of(state) == TINY
 
 
 def test_ground_truth_keypoints_give_the_ground_truth_pose(tiny_dataset):

@@ -97,6 +97,9 @@ class Profile:
         hull: the same verdicts on any machine), ``pose_bound_start_depth``. A model left
         out skips the method. ``'zonotope'`` is far tighter on the CNN than ``'forward'``
         but takes seconds to minutes per node on 2 CPU cores.
+    precision : the natural CNN's and ResNet-18's training forward pass
+        (:class:`kpstudy.models.training.TrainConfig`'s ``precision``; the verification-
+        friendly CNN's recipe keeps its own).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
     workers : local processes per campaign.
@@ -121,6 +124,7 @@ class Profile:
     tolerance_units: tuple = ("heatmap", "paper")
     local_pose_bound: dict = field(default_factory=lambda: dict(LOCAL_POSE_BOUND))
     global_pose_bound: dict = field(default_factory=lambda: dict(GLOBAL_POSE_BOUND))
+    precision: str = "float32"
     symmetry_backbone: str = "cnn"
     figure_images: int = 50
     workers: int = 1
@@ -229,6 +233,7 @@ PROFILES = {
         method="forward",
         nodes=2,
         workers=2,
+        precision="bfloat16",
     ),
     "paper": Profile(
         "paper",
@@ -449,7 +454,13 @@ def train_models(
     dataset = load_coco(out / "data")["info"]["config"]
     first, second = friendly_recipe(prof)
     configs = {
-        "cnn": TrainConfig("cnn", epochs=prof.cnn_epochs, images=prof.cnn_images, seed=prof.seed),
+        "cnn": TrainConfig(
+            "cnn",
+            epochs=prof.cnn_epochs,
+            images=prof.cnn_images,
+            seed=prof.seed,
+            precision=prof.precision,
+        ),
         "resnet18": TrainConfig(
             "resnet18",
             epochs=prof.resnet_epochs,
@@ -457,6 +468,7 @@ def train_models(
             seed=prof.seed,
             batch_size=16,
             lr=1e-3,
+            precision=prof.precision,
         ),
     }
     device = "cuda" if torch.cuda.is_available() else "cpu"
