@@ -170,7 +170,7 @@ def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: 
     first, _ = pb._search_regions(backbone, hull, pose.centers, 1, pose.search)
     # Every unreached cell in focus: the second search may split wherever the first left one.
     focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
-    merged, pixels = pose._refined(first, focus)
+    merged, pixels = pose._refined(first, focus, 6)
     assert 1 < merged.nodes <= first.nodes + 6
     for before, after in zip(first.possible, merged.possible):
         assert set(after.tolist()) <= set(before.tolist())

@@ -18,7 +18,7 @@ from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_p
 from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
 from kpstudy.study import tables
-from kpstudy.verify import ConvexHull
+from kpstudy.verify import ConvexHull, Regions
 from tests.conftest import IMAGE_SIZE, views
 
 HM = 64  # heatmap side
@@ -508,3 +508,68 @@ def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tole
     # A cell some image is known to reach is a fact, not a split's target.
     regions.witnesses[0][cell(0, *far)] = torch.ones(1, dtype=torch.float64)
     assert not any(len(f) for f in pb._focus(regions, pooling, HM, involved))
+
+
+def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(scene, monkeypatch):
+    seed, R, t, factors, centers = scene
+    eps, _ = _far_tolerance(scene)
+    centers = centers.astype(np.int64)
+    pose = pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, np.zeros((6, 46)))
+    pose._spent = 0.0
+    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pose.pooling]
+    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
+    # Keypoint 0 may go 8 pixels right (alone, outside Ξ), keypoint 1 one pixel (inside).
+    far, near = centers[0] + [8, 0], centers[1] + [1, 0]
+    possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
+    possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
+    possible[1] = np.array(sorted([cell(1, *centers[1]), cell(1, *near)]))
+    seed_lam = torch.zeros(1, dtype=torch.float64)
+    witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
+    regions = types.SimpleNamespace(possible=possible, witnesses=witnesses)
+    pixels = pb.region_pixels(regions, pose.pooling, HM)
+    verdict = {"rule": "linearised", "involved": None}
+    focus = pose._refine_focus(eps, verdict, regions, pixels, budget=1)
+    assert focus[0].tolist() == [cell(0, *far)] and not any(len(f) for f in focus[1:])
+    # More cells than FOCUS_PER_NODE per node of the budget: no search.
+    monkeypatch.setattr(pb, "FOCUS_PER_NODE", 0)
+    assert pose._refine_focus(eps, verdict, regions, pixels, budget=1) is None
+    # Nothing outside alone: nothing to aim at.
+    monkeypatch.setattr(pb, "FOCUS_PER_NODE", 8)
+    assert pose._refine_focus(2 * eps + 100, verdict, regions, pixels, budget=1) is None
+
+
+def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, monkeypatch):
+    seed, R, t, factors, centers = scene
+    eps, _ = _far_tolerance(scene)
+    centers = centers.astype(np.int64)
+    pooling = pb._pooling(centers, 1, HM)
+    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pooling]
+    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
+    far = centers[0] + [8, 0]
+    seed_lam = torch.zeros(1, dtype=torch.float64)
+    foci = []
+
+    def search(backbone, hull, centers_, stride, search, focus=None):
+        """The first search leaves keypoint 0's far pixel possible; a focused one removes it."""
+        foci.append(focus)
+        possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
+        if focus is None:
+            possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
+        witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
+        nodes = 2 if focus is None else 1
+        stats = {"stopped": None}
+        found = Regions([HM * HM] * len(centers), possible, witnesses, 0.0, nodes, stats)
+        return found, pb.region_pixels(found, pooling, HM)
+
+    monkeypatch.setattr(pb, "_search_regions", search)
+    monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
+    M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves it open
+    args = (_Peaks(centers), _hull(), seed, R, t, M, eps)
+    alone = pb.pose_bound(*args, random_corners=4)
+    assert alone["pb_status"] == "unknown" and alone["pb_rule"] == "linearised"
+    assert alone["pb_refined"] == 0 and len(foci) == 1
+    refined = pb.pose_bound(*args, random_corners=4, refine_nodes=4)
+    assert foci[2][0].tolist() == [cell(0, *far)] and not any(len(f) for f in foci[2][1:])
+    assert refined["pb_status"] == "holds" and refined["pb_rule"] == "enumeration"
+    assert refined["pb_refined"] == 1 and refined["pb_nodes"] == 3
+    assert refined["pb_pixels"] == [1] * len(centers)

@@ -328,7 +328,7 @@ def certify_cells(
         first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
         ``start_depth``).
     pose_bound_refine_nodes : int
-        Its second, focused search where the enumeration leaves combinations outside Ξ
+        Its focused second searches for an ``unknown`` verdict
         (:class:`~kpstudy.certify.pose_bound_method.HullPoseBound`'s ``refine_nodes``).
 
     Returns

@@ -47,11 +47,14 @@ Before an enumerated ``unknown``, :func:`targeted_witness` looks for an image wh
 argmax is the combination farthest outside Ξ or one of the :data:`TARGETED_MOVES`
 possible one-keypoint moves that alone leave Ξ (:func:`single_moves`); found, and its
 pose re-checked like every witness's, the instance is ``violated`` by ``'witness'``.
+An ``unknown`` may then get a second, focused search (:class:`HullPoseBound`'s
+``refine_nodes``) and the rules run again on its smaller regions.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import time
 
@@ -70,6 +73,7 @@ from kpstudy.verify.reachable import check_search
 
 __all__ = [
     "ENUMERATION_CHUNK",
+    "FOCUS_PER_NODE",
     "HullPoseBound",
     "MAX_COMBINATIONS",
     "argmax_outside",
@@ -86,6 +90,11 @@ TARGETED_STARTS = 4
 #: One-keypoint moves outside Ξ (:func:`single_moves`, farthest first) that
 #: :func:`pose_bound` seeks with :func:`targeted_witness` before ``'unknown'``.
 TARGETED_MOVES = 4
+#: Most focus cells per node of the second search (:class:`HullPoseBound`'s
+#: ``refine_nodes``): a larger focus is not searched. The quick T-local hulls that such a
+#: search decided cleared 168 cells in 28 nodes and 21 pixels in 36; on one it could not
+#: decide, 6.3·10³ of 6.7·10³ single moves outside Ξ were left after 48 (docs/findings.md).
+FOCUS_PER_NODE = 8
 #: Most combinations of region pixels (the product of the keypoints' region sizes) that
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
 #: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
@@ -272,10 +281,12 @@ class HullPoseBound:
         Splits of the hull before the first bounds
         (:func:`kpstudy.verify.reachable_argmax`).
     refine_nodes : int
-        Where the enumeration leaves combinations outside Ξ that no image was found to
-        reach, a second search of this many nodes (same method, timeout and start depth)
-        splits only the nodes that keep a pixel of such a combination without a witness,
-        and the enumeration is repeated on the smaller regions (0: none).
+        Nodes for focused second searches where the verdict is ``unknown`` (0: none).
+        Each (same method, timeout and start depth) splits only the nodes that keep an
+        unreached cell holding an involved pixel: one in a combination outside Ξ under
+        the enumeration rule, one that alone takes the pose outside Ξ under the
+        linearised rule (:meth:`_refine_focus`); the rules then run again on the smaller
+        regions, and a verdict still ``unknown`` gets another round while nodes are left.
     random_corners : int
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
@@ -376,15 +387,18 @@ class HullPoseBound:
                 ),
             )
         verdict = self._judge(eps, kappa, regions, pixels, early)
-        refined = 0
-        if verdict["rule"] == "enumeration" and verdict["status"] == "unknown" and self.refine:
-            focus = _focus(regions, self.pooling, self.backbone.heatmap_size, verdict["involved"])
-            if any(len(f) for f in focus):
-                regions, pixels = self._shared(
-                    ("refine", digest(*focus)), lambda: self._refined(regions, focus)
-                )
-                refined = regions.nodes - verdict["nodes"]
-                verdict = self._judge(eps, kappa, regions, pixels, None)
+        refined = 0  # second-search nodes; each round aims at what the last one left
+        while verdict["status"] == "unknown" and refined < self.refine:
+            budget = self.refine - refined
+            focus = self._refine_focus(eps, verdict, regions, pixels, budget)
+            if focus is None:
+                break
+            key = ("refine", budget, digest(*regions.possible, *focus))
+            regions, pixels = self._shared(
+                key, functools.partial(self._refined, regions, focus, budget)
+            )
+            refined += regions.nodes - verdict["nodes"]
+            verdict = self._judge(eps, kappa, regions, pixels, None)
         return {
             "pb_status": verdict["status"],
             "pb_rule": verdict["rule"],
@@ -459,12 +473,34 @@ class HullPoseBound:
             nodes=regions.nodes,
         )
 
-    def _refined(self, regions, focus) -> tuple:
-        """The regions after a second search of :attr:`refine` nodes that splits only
-        where a pixel of ``focus`` (per keypoint, cell indices) has no witness yet; its
-        possible sets intersect the first search's (both are sound) and its witnesses
-        join them. Returns the merged :class:`Regions` and their pixels."""
-        search = dict(self.search, max_nodes=self.refine)
+    def _refine_focus(self, eps, verdict, regions, pixels, budget: int) -> list | None:
+        """Per keypoint, the cells an ``unknown`` verdict's second search aims at
+        (:func:`_focus`: possible, unreached, holding an involved pixel), or None where
+        there are none or more than :data:`FOCUS_PER_NODE` per node of ``budget``.
+
+        A pixel is involved, under the enumeration rule, when it takes part in a
+        combination outside Ξ; under the linearised rule, when it alone takes the pose
+        outside Ξ, the other keypoints at the seed image's argmax (:func:`single_moves`).
+        """
+        if verdict["rule"] == "enumeration":
+            involved = verdict["involved"]
+        else:
+            seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
+            base = self._shared("seed argmax", lambda: self._seed_argmax(seed_lam))
+            involved = [np.zeros(len(p), dtype=bool) for p in pixels]
+            moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)
+            for k, pixel in moves:
+                involved[k] |= (pixels[k] == pixel).all(1)
+        focus = _focus(regions, self.pooling, self.backbone.heatmap_size, involved)
+        cells = sum(len(f) for f in focus)
+        return focus if 0 < cells <= FOCUS_PER_NODE * budget else None
+
+    def _refined(self, regions, focus, budget: int) -> tuple:
+        """The regions after a second search of ``budget`` nodes that splits only where
+        a pixel of ``focus`` (per keypoint, cell indices) has no witness yet; its possible
+        sets intersect those of ``regions`` (both are sound) and its witnesses join them.
+        Returns the merged :class:`Regions` and their pixels."""
+        search = dict(self.search, max_nodes=budget)
         second, _ = _search_regions(
             self.backbone, self.hull, self.centers, self.stride, search, focus=focus
         )

@@ -148,8 +148,8 @@ class Settings:
     )
     pose_bound_refine_nodes: int = _setting(
         0,
-        "nodes of a second pose-bound search that splits only where a combination outside "
-        "the tolerance box has no witness (0: none)",
+        "nodes of focused second pose-bound searches for an unknown verdict, split only "
+        "where a pixel that keeps it open has no witness (0: none)",
     )
     tolerance_units: str = _setting(
         "heatmap",
