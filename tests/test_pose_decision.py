@@ -549,7 +549,7 @@ def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, mon
     seed_lam = torch.zeros(1, dtype=torch.float64)
     foci = []
 
-    def search(backbone, hull, centers_, stride, search, focus=None):
+    def search(backbone, hull, centers_, stride, search, focus=None, resume=None):
         """The first search leaves keypoint 0's far pixel possible; a focused one removes it."""
         foci.append(focus)
         possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]

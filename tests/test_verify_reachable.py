@@ -166,6 +166,41 @@ def test_a_focused_search_is_sound(seed):
     assert all(s <= set(p.tolist()) for s, p in zip(sampled, regions.possible))
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_a_resumed_search_goes_on_as_one_longer_search(seed):
+    model = MixedNet(seed)
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5))
+    search = dict(method="zonotope", start_depth=2, timeout=CAP)
+    first = reachable_argmax(model, hull, [3, 3], max_nodes=4, **search)
+    assert first.nodes == 4 and first.frontier is not None
+    resumed = reachable_argmax(model, hull, [3, 3], max_nodes=4, resume=first, **search)
+    whole = reachable_argmax(model, hull, [3, 3], max_nodes=8, **search)
+    assert resumed.nodes == whole.nodes - first.nodes  # no node bounded twice
+    for g in range(2):
+        assert resumed.possible[g].tolist() == whole.possible[g].tolist()
+        assert set(resumed.witnesses[g]) == set(whole.witnesses[g])
+        assert set(resumed.possible[g].tolist()) <= set(first.possible[g].tolist())
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_a_search_resumed_with_another_focus_is_sound(seed):
+    model = MixedNet(seed)
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5))
+    search = dict(method="zonotope", timeout=CAP)
+    first = reachable_argmax(model, hull, [3, 3], max_nodes=3, focus=[[0], []], **search)
+    second = reachable_argmax(
+        model, hull, [3, 3], max_nodes=20, focus=[[1, 2], [0, 1, 2]], resume=first, **search
+    )
+    third = reachable_argmax(model, hull, [3, 3], max_nodes=20, resume=second, **search)
+    sampled = sampled_argmax(model, hull, [3, 3])
+    for later, earlier in ((second, first), (third, second)):
+        for g in range(2):
+            assert sampled[g] <= set(later.possible[g].tolist())
+            assert set(later.possible[g].tolist()) <= set(earlier.possible[g].tolist())
+    with pytest.raises(ValueError, match="^resume"):
+        reachable_argmax(model, hull, [2, 4], max_nodes=1, resume=first, **search)
+
+
 def test_bad_input_is_named():
     model = MixedNet(0)
     hull = ConvexHull(hull_vertices(0, 2, (2, 8, 8)))

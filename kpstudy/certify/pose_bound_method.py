@@ -282,11 +282,12 @@ class HullPoseBound:
         (:func:`kpstudy.verify.reachable_argmax`).
     refine_nodes : int
         Nodes for focused second searches where the verdict is ``unknown`` (0: none).
-        Each (same method, timeout and start depth) splits only the nodes that keep an
-        unreached cell holding an involved pixel: one in a combination outside Ξ under
-        the enumeration rule, one that alone takes the pose outside Ξ under the
-        linearised rule (:meth:`_refine_focus`); the rules then run again on the smaller
-        regions, and a verdict still ``unknown`` gets another round while nodes are left.
+        Each goes on from where the search so far stopped (same method and timeout) and
+        splits only the nodes that keep an unreached cell holding an involved pixel: one
+        in a combination outside Ξ under the enumeration rule, one that alone takes the
+        pose outside Ξ under the linearised rule (:meth:`_refine_focus`); the rules then
+        run again on the smaller regions, and a verdict still ``unknown`` gets another
+        round while nodes are left.
     random_corners : int
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
@@ -496,28 +497,18 @@ class HullPoseBound:
         return focus if 0 < cells <= FOCUS_PER_NODE * budget else None
 
     def _refined(self, regions, focus, budget: int) -> tuple:
-        """The regions after a second search of ``budget`` nodes that splits only where
-        a pixel of ``focus`` (per keypoint, cell indices) has no witness yet; its possible
-        sets intersect those of ``regions`` (both are sound) and its witnesses join them.
-        Returns the merged :class:`Regions` and their pixels."""
+        """The regions after ``regions``' search goes on for ``budget`` nodes from where
+        it stopped (its :class:`~kpstudy.verify.reachable.Frontier`), splitting only where
+        a pixel of ``focus`` (per keypoint, cell indices) has no witness yet. Returns the
+        :class:`Regions` (their ``nodes`` and ``time`` those of both searches) and their
+        pixels."""
         search = dict(self.search, max_nodes=budget)
-        second, _ = _search_regions(
-            self.backbone, self.hull, self.centers, self.stride, search, focus=focus
+        second, pixels = _search_regions(
+            self.backbone, self.hull, self.centers, self.stride, search, focus, regions
         )
-        witnesses = [{**b, **a} for a, b in zip(regions.witnesses, second.witnesses)]
-        possible = [
-            np.union1d(np.intersect1d(a, b), np.array(sorted(w), dtype=np.int64))
-            for a, b, w in zip(regions.possible, second.possible, witnesses)
-        ]
-        merged = Regions(
-            regions.group_sizes,
-            possible,
-            witnesses,
-            regions.time + second.time,
-            regions.nodes + second.nodes,
-            dict(second.stats),
-        )
-        return merged, region_pixels(merged, self.pooling, self.backbone.heatmap_size)
+        second.nodes += regions.nodes
+        second.time += regions.time
+        return second, pixels
 
     def _shared(self, key, make):
         """``make()``'s value, made once per hull; ``decide``'s ``pb_time`` counts its
@@ -599,14 +590,17 @@ def _pooling(centers, stride: int, heatmap_size: int):
     return keypoint_pooling(centers, half, (heatmap_size, heatmap_size))
 
 
-def _search_regions(backbone, hull, centers, stride: int, search: dict, focus=None):
+def _search_regions(backbone, hull, centers, stride: int, search: dict, focus=None, resume=None):
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords and ``focus``; the :class:`Regions` and each keypoint's pixels ``(n_k, 2)``."""
+    keywords, ``focus`` and ``resume``; the :class:`Regions` and each keypoint's pixels
+    ``(n_k, 2)``."""
     hm = backbone.heatmap_size
     pooling = _pooling(centers, stride, hm)
     proxy = build_proxy(backbone, pooling, centers).eval()
-    regions = reachable_argmax(proxy, hull, proxy.spec.group_sizes, focus=focus, **search)
+    regions = reachable_argmax(
+        proxy, hull, proxy.spec.group_sizes, focus=focus, resume=resume, **search
+    )
     return regions, region_pixels(regions, pooling, hm)
 
 

@@ -18,7 +18,7 @@ from kpstudy.verify.bab import verify
 from kpstudy.verify.bounds import output_bounds
 from kpstudy.verify.export import export_instance, export_onnx, read_vnnlib_polytope
 from kpstudy.verify.profile import bound_profile
-from kpstudy.verify.reachable import Regions, reachable_argmax
+from kpstudy.verify.reachable import Frontier, Regions, reachable_argmax
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.spec import ArgmaxSpec
@@ -29,6 +29,7 @@ __all__ = [
     "ConvexHull",
     "Counterexample",
     "Parallelotope",
+    "Frontier",
     "Regions",
     "Result",
     "bound_profile",

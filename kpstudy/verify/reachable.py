@@ -44,6 +44,24 @@ MAX_START_DEPTH = 12
 
 
 @dataclass
+class Frontier:
+    """Where a :func:`reachable_argmax` search stopped: enough to resume it.
+
+    Attributes
+    ----------
+    queue : list
+        ``(nodes, state, level)`` entries not yet bounded, each node with the indices
+        ``(B, G, S)`` its parent kept: the search's open nodes, and the children of nodes
+        it closed only because they held no index of its ``focus`` without a witness.
+    resolved : Tensor, shape (G, S), bool
+        Indices kept by the nodes it closed with every kept index reached.
+    """
+
+    queue: list
+    resolved: torch.Tensor
+
+
+@dataclass
 class Regions:
     """Outcome of :func:`reachable_argmax`.
 
@@ -63,6 +81,8 @@ class Regions:
     stats : dict
         ``method``, ``depth``, ``candidates``; ``stopped``: ``'nodes'`` (``max_nodes``
         spent), ``'time'`` (``timeout`` fired; also ``timed_out``) or None (finished).
+    frontier : Frontier, optional
+        Where the search stopped (``resume`` of :func:`reachable_argmax`).
     """
 
     group_sizes: list[int]
@@ -71,6 +91,7 @@ class Regions:
     time: float
     nodes: int
     stats: dict = field(default_factory=dict)
+    frontier: Frontier | None = None
 
     def reached(self, group: int) -> np.ndarray:
         """Sorted indices of ``group`` with a witness (a subset of ``possible[group]``)."""
@@ -103,6 +124,7 @@ def reachable_argmax(
     tol: float = 1e-5,
     memory: int = 2**25,
     focus=None,
+    resume: Regions | None = None,
 ) -> Regions:
     """Sound sets of the indices each output group's argmax can take over ``input_set``.
 
@@ -143,6 +165,11 @@ def reachable_argmax(
         Per group, the indices worth a split: a node stays open only while it keeps one
         of them without a witness (default: every index). The possible sets stay sound;
         the budget goes to the nodes that hold the indices a caller needs removed.
+    resume : Regions, optional
+        A search of the same ``model``, ``input_set`` and groups to continue from its
+        :class:`Frontier` (with its witnesses) instead of the root, typically with another
+        ``focus``: no node is bounded twice, and ``max_nodes`` counts the new ones only.
+        ``start_depth``, ``samples`` and ``seed`` are then unused.
 
     Returns
     -------
@@ -199,27 +226,32 @@ def reachable_argmax(
         batch = default_batch(graph, input_set, method == "zonotope", memory, widest)
 
     with torch.no_grad():
-        if samples:
-            search.witness(input_set.sample(samples, seed))
-        root = input_set.root()
-        search.witness(input_set.node_points(root).reshape(-1, input_set.n))  # its corners
-        for _ in range(start_depth):
-            root = input_set.split(root)
+        if resume is not None:
+            queue = search.resume(resume)
+        else:
+            if samples:
+                search.witness(input_set.sample(samples, seed))
+            root = input_set.root()
+            search.witness(input_set.node_points(root).reshape(-1, input_set.n))  # corners
+            for _ in range(start_depth):
+                root = input_set.split(root)
+            queue = [(root, search.valid[None].repeat(len(root), 1, 1), start_depth)]
         done = branch_and_bound(
-            root,
-            search.valid[None].repeat(len(root), 1, 1),
+            None,
+            None,
             search.decide,
             input_set.split,
             batch=batch,
             deadline=start + timeout,
             max_nodes=max_nodes,
             exact_budget=True,
-            level=start_depth,
+            queue=queue,
         )
-        possible = search.possible
+        possible = search.possible.clone()
         for _, parent, _ in done.left:  # what was left open keeps its parent's sets
             possible |= parent.any(0)
         possible |= search.reached  # float rounding must never drop a witnessed index
+        parked = [(input_set.split(n), s.repeat(2, 1, 1), lv + 1) for n, s, lv in search.parked]
     return Regions(
         sizes,
         [np.flatnonzero(p.numpy()) for p in possible],
@@ -233,6 +265,7 @@ def reachable_argmax(
             "stopped": done.stopped,
             "candidates": candidates,
         },
+        Frontier(done.left + search.carried + parked, search.resolved.clone()),
     )
 
 
@@ -258,6 +291,7 @@ class _Reach:
     def __init__(self, model, graph, input_set, sizes, method, candidates, tol, deadline):
         self.model, self.graph, self.set, self.deadline = model, graph, input_set, deadline
         self.G, self.S, self.method, self.k = len(sizes), max(sizes), method, candidates
+        self.sizes = list(sizes)
         # Groups padded to a (G, S) layout: flat output index and whether it exists.
         offsets = np.cumsum([0, *sizes[:-1]])
         within = torch.arange(self.S)
@@ -268,8 +302,37 @@ class _Reach:
         self.focus = self.valid.clone()  # indices whose lack of a witness keeps a node open
         #: Indices undominated in some node closed so far ``(G, S)``.
         self.possible = torch.zeros(self.G, self.S, dtype=torch.bool)
+        #: Of those, the ones of nodes closed with every kept index reached.
+        self.resolved = torch.zeros(self.G, self.S, dtype=torch.bool)
+        #: ``(nodes, kept, level)`` closed for want of a focus index, bounded / unbounded.
+        self.parked: list = []
+        self.carried: list = []
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
         self.tol_abs = absolute_tol(graph, input_set, tol)
+
+    def resume(self, regions: Regions) -> list:
+        """Take over ``regions``' witnesses and :class:`Frontier`; the frontier's entries
+        that keep a focus index without a witness, to bound (the others stay in the
+        frontier, their indices possible)."""
+        if regions.frontier is None or list(regions.group_sizes) != self.sizes:
+            raise ValueError(
+                f"resume: expected the Regions of a search over groups {self.sizes} "
+                "(with its frontier)"
+            )
+        for g, found in enumerate(regions.witnesses):
+            self.witnesses[g] = dict(found)
+            self.reached[g, list(found)] = True
+        self.resolved = regions.frontier.resolved.clone()
+        self.possible = self.resolved.clone()
+        queue = []
+        for nodes, state, level in regions.frontier.queue:
+            open_ = (state & ~self.reached & self.focus).flatten(1).any(1)
+            if (~open_).any():
+                self.possible |= state[~open_].any(0)
+                self.carried.append((nodes[~open_], state[~open_], level))
+            if open_.any():
+                queue.append((nodes[open_], state[open_], level))
+        return queue
 
     def witness(self, points: torch.Tensor) -> None:
         """Record the concrete argmax of every group at ``points (P, n)``."""
@@ -290,8 +353,13 @@ class _Reach:
         :attr:`possible`."""
         self.witness(self.set.node_points(nodes)[:, -1])  # the centres
         kept = self.undominated(nodes) & parent
-        open_ = (kept & ~self.reached & self.focus).flatten(1).any(1)
+        unreached = kept & ~self.reached
+        open_ = (unreached & self.focus).flatten(1).any(1)
+        parked = ~open_ & unreached.flatten(1).any(1)  # open but for the focus
         self.possible |= kept[~open_].any(0)
+        self.resolved |= kept[~open_ & ~parked].any(0)
+        if parked.any():
+            self.parked.append((nodes[parked], kept[parked], level))
         return Step(kept, open_)
 
     def undominated(self, nodes: torch.Tensor) -> torch.Tensor:
@@ -337,4 +405,4 @@ class _Reach:
         return torch.where(self.valid, y[..., self.flat], fill)
 
 
-__all__ = ["Regions", "reachable_argmax"]
+__all__ = ["Frontier", "Regions", "reachable_argmax"]

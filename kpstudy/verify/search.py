@@ -64,14 +64,15 @@ def branch_and_bound(
     max_nodes: int | None = None,
     exact_budget: bool = False,
     level: int = 0,
+    queue: list | None = None,
 ) -> Search:
     """Breadth-first branch and bound from the nodes ``root`` with states ``state``.
 
     Parameters
     ----------
-    root : Tensor, shape (R, …)
+    root : Tensor, shape (R, …), or None
         The first nodes (the input set's root, or its first splits).
-    state : Tensor, shape (R, …)
+    state : Tensor, shape (R, …), or None
         Their states.
     decide : callable
         ``decide(nodes (B, …), state (B, …), level) -> Step``; it may raise
@@ -89,13 +90,18 @@ def branch_and_bound(
         unless ``exact_budget``, where batches are cut to what the budget has left.
     level : int
         The root's depth (how often it was split).
+    queue : list, optional
+        ``(nodes, state, level)`` entries to start from instead of ``root``, ``state`` and
+        ``level`` (None then): a search resumed where another stopped (its
+        :attr:`Search.left`).
 
     Returns
     -------
     Search
     """
-    queue = [(root, state, level)]
-    done, depth, stopped = 0, level, None
+    queue = [(root, state, level)] if queue is None else list(queue)
+    depth = min((entry[2] for entry in queue), default=level)
+    done, stopped = 0, None
     while queue:
         if max_nodes is not None and done >= max_nodes:
             stopped = "nodes"
