@@ -481,14 +481,23 @@ def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
     assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1
 
 
-def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tolerance(scene):
-    seed, R, t, factors, centers = scene
-    eps, _ = _far_tolerance(scene)
-    centers = centers.astype(np.int64)
+def _stride1_cells(scene):
+    """The scene's rounded centres (int), their stride-1 pooling, the cell index of
+    keypoint k's heatmap pixel ``(u, v)``, and the pixel 8 right of keypoint 0's."""
+    centers = scene[-1].astype(np.int64)
     pooling = pb._pooling(centers, 1, HM)
     n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pooling]
-    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
-    far = centers[0] + [8, 0]
+
+    def cell(k, u, v):
+        return int(v * n_h[k] + u)  # stride 1: one pixel a cell
+
+    return centers, pooling, cell, centers[0] + [8, 0]
+
+
+def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tolerance(scene):
+    seed, R, t, factors, _ = scene
+    eps, _ = _far_tolerance(scene)
+    centers, pooling, cell, far = _stride1_cells(scene)
     possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
     possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
     # The seed reaches every keypoint's rounded pixel (a witness at λ = 0).
@@ -511,22 +520,20 @@ def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tole
 
 
 def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(scene, monkeypatch):
-    seed, R, t, factors, centers = scene
+    seed, R, t, factors, _ = scene
     eps, _ = _far_tolerance(scene)
-    centers = centers.astype(np.int64)
+    centers, pooling, cell, far = _stride1_cells(scene)
     pose = pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, np.zeros((6, 46)))
     pose._spent = 0.0
-    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pose.pooling]
-    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
     # Keypoint 0 may go 8 pixels right (alone, outside Ξ), keypoint 1 one pixel (inside).
-    far, near = centers[0] + [8, 0], centers[1] + [1, 0]
+    near = centers[1] + [1, 0]
     possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
     possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
     possible[1] = np.array(sorted([cell(1, *centers[1]), cell(1, *near)]))
     seed_lam = torch.zeros(1, dtype=torch.float64)
     witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
     regions = types.SimpleNamespace(possible=possible, witnesses=witnesses)
-    pixels = pb.region_pixels(regions, pose.pooling, HM)
+    pixels = pb.region_pixels(regions, pooling, HM)
     verdict = {"rule": "linearised", "involved": None}
     focus = pose._refine_focus(eps, verdict, regions, pixels, budget=1)
     assert focus[0].tolist() == [cell(0, *far)] and not any(len(f) for f in focus[1:])
@@ -539,13 +546,9 @@ def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(s
 
 
 def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, monkeypatch):
-    seed, R, t, factors, centers = scene
+    seed, R, t, factors, _ = scene
     eps, _ = _far_tolerance(scene)
-    centers = centers.astype(np.int64)
-    pooling = pb._pooling(centers, 1, HM)
-    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pooling]
-    cell = lambda k, u, v: int(v * n_h[k] + u)  # noqa: E731  (stride 1: one pixel a cell)
-    far = centers[0] + [8, 0]
+    centers, pooling, cell, far = _stride1_cells(scene)
     seed_lam = torch.zeros(1, dtype=torch.float64)
     foci = []
 
