@@ -92,7 +92,7 @@ TARGETED_STARTS = 4
 TARGETED_MOVES = 4
 #: Most focus cells per node of the second search (:class:`HullPoseBound`'s
 #: ``refine_nodes``): a larger focus is not searched. The quick T-local hulls that such a
-#: search decided cleared 168 cells in 28 nodes and 21 pixels in 36; on one it could not
+#: search decided cleared 168 cells in 12 nodes and 21 pixels in 20; on one it could not
 #: decide, 6.3·10³ of 6.7·10³ single moves outside Ξ were left after 48 (docs/findings.md).
 FOCUS_PER_NODE = 8
 #: Most combinations of region pixels (the product of the keypoints' region sizes) that

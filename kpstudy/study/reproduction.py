@@ -195,8 +195,8 @@ class Profile:
 #: each: docs/findings.md), the verification-friendly CNN with the zonotope on the
 #: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
 #: scale its bound term was trained on), then up to 48 nodes aimed at the cells that keep
-#: an `unknown` open (seed 481, m = 2 needs 36 under the enumeration rule; seed 935, m = 3
-#: overlapping 28 under the linearised one). Node budgets give the same verdicts on any
+#: an `unknown` open (seed 481, m = 2 needs 20 under the enumeration rule; seed 935, m = 3
+#: overlapping 12 under the linearised one). Node budgets give the same verdicts on any
 #: machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
