@@ -486,8 +486,7 @@ class HullPoseBound:
         if verdict["rule"] == "enumeration":
             involved = verdict["involved"]
         else:
-            seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
-            base = self._shared("seed argmax", lambda: self._seed_argmax(seed_lam))
+            base = self._seed_argmax()
             involved = [np.zeros(len(p), dtype=bool) for p in pixels]
             moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)
             for k, pixel in moves:
@@ -528,8 +527,7 @@ class HullPoseBound:
         Over more combinations than are enumerated the regions are the bounds' looseness:
         attacks on them found nothing on the quick T-local hulls and took ~90 s each
         (docs/findings.md), so only enumerated regions are attacked."""
-        seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
-        base = self._shared("seed argmax", lambda: self._seed_argmax(seed_lam))
+        base = self._seed_argmax()
         targets = [np.stack([p[i] for p, i in zip(pixels, farthest)])]
         moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)
         for k, pixel in moves[:TARGETED_MOVES]:
@@ -545,11 +543,17 @@ class HullPoseBound:
         )
         return None if lam is None else self._outside(eps, [lam])
 
-    def _seed_argmax(self, seed_lam) -> np.ndarray:
-        """The seed image's argmax pixels ``(K, 2)``, heatmap ``(u, v)``."""
-        with torch.no_grad():
-            heatmaps = self.backbone(self.hull.image(seed_lam))
-        return argmax_keypoints(heatmaps)[0].double().numpy()
+    def _seed_argmax(self) -> np.ndarray:
+        """The seed image's argmax pixels ``(K, 2)``, heatmap ``(u, v)``, made once per
+        hull."""
+
+        def make():
+            seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
+            with torch.no_grad():
+                heatmaps = self.backbone(self.hull.image(seed_lam))
+            return argmax_keypoints(heatmaps)[0].double().numpy()
+
+        return self._shared("seed argmax", make)
 
     def _argmax_errors(self, lam) -> np.ndarray:
         """:func:`argmax_pose_errors` of ``hull.image(lam)`` for ``lam (P, n)``, each
