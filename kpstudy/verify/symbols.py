@@ -136,13 +136,19 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
     ]
     (kv, kh), (left, _, top, _) = op.kernel_size, op.pad
     scale = op.scale.to(mid.dtype)
+    unit = bool((scale == 1).all())
     for b in blocks:
         r, (h, w) = b.rows, b.coeff.shape[-2:]
         y, x = b.y + top, b.x + left  # the window in the padded map
         c0, c1, d0, d1 = y // kv, -(-(y + h) // kv), x // kh, -(-(x + w) // kh)
         pad = (x - d0 * kh, d1 * kh - x - w, y - c0 * kv, c1 * kv - y - h)
-        coeff = F.pad(b.coeff.reshape(B * r, 1, h, w), pad)
-        pooled = F.avg_pool2d(coeff, (kv, kh)) * scale[c0:c1, d0:d1]
+        pooled = b.coeff.reshape(B * r, 1, h, w)  # one-pixel cells of scale 1: as it is
+        if any(pad):
+            pooled = F.pad(pooled, pad)
+        if (kv, kh) != (1, 1):
+            pooled = F.avg_pool2d(pooled, (kv, kh))
+        if not unit:
+            pooled = pooled * scale[c0:c1, d0:d1]
         window = (
             slice(None),
             slice(b.start, b.start + r),
