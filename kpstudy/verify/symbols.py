@@ -142,7 +142,8 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
         y, x = b.y + top, b.x + left  # the window in the padded map
         c0, c1, d0, d1 = y // kv, -(-(y + h) // kv), x // kh, -(-(x + w) // kh)
         pad = (x - d0 * kh, d1 * kh - x - w, y - c0 * kv, c1 * kv - y - h)
-        pooled = b.coeff.reshape(B * r, 1, h, w)  # one-pixel cells of scale 1: as it is
+        # The stride-1 proxy's one-pixel cells of scale 1 pass as they are.
+        pooled = b.coeff.reshape(B * r, 1, h, w)
         if any(pad):
             pooled = F.pad(pooled, pad)
         if (kv, kh) != (1, 1):
