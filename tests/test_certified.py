@@ -252,14 +252,24 @@ def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     import json
 
-    from kpstudy.study.reproduction import FRIENDLY, FRIENDLY_FINETUNE, SHIPPED, probe_input
+    from kpstudy.study.reproduction import (
+        FRIENDLY_STAGES,
+        PROFILES,
+        SHIPPED,
+        follows_recipe,
+        friendly_recipe,
+        probe_input,
+    )
 
     backbone, state = load_checkpoint(SHIPPED)
     card = json.loads(SHIPPED.with_suffix(".json").read_text())
-    assert {k: getattr(config_of(state), k) for k in FRIENDLY_FINETUNE} == FRIENDLY_FINETUNE
-    first = TrainConfig(**state["init_config"])
-    assert {k: getattr(first, k) for k in FRIENDLY} == FRIENDLY
-    assert card["recipe"] == state["config"] and card["init_recipe"] == state["init_config"]
+    made = [TrainConfig(**c) for c in state["lineage"]] + [config_of(state)]
+    assert len(made) == len(FRIENDLY_STAGES)
+    for config, stage in zip(made, FRIENDLY_STAGES):
+        assert {k: getattr(config, k) for k in stage} == stage
+    assert card["recipe"] == state["config"] and card["lineage"] == state["lineage"]
+    assert follows_recipe(state, friendly_recipe(PROFILES["quick"]))  # reproduce copies it
+    assert not follows_recipe(state, friendly_recipe(PROFILES["quick"])[1:])
     assert "optimizer" not in state
     with torch.no_grad():
         h = backbone(probe_input()).double()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -256,11 +257,14 @@ def test_a_fine_tuning_stage_starts_from_its_initial_checkpoint(checkpoint, tiny
         epochs=1, batch_size=4, images=8, lr=1e-12, schedule="constant", init=digest
     )
     state = train(tiny_dataset, tmp_path / "ft.pt", stage, init=checkpoint, progress=False)
-    assert state["init_config"] == base["config"]
+    assert state["lineage"] == [base["config"]]
     for name, value in base["model"].items():
         if value.is_floating_point() and "running_" not in name:  # batch statistics move
             torch.testing.assert_close(state["model"][name], value, atol=1e-6, rtol=0)
     assert [g["lr"] for g in torch.load(tmp_path / "ft.pt")["optimizer"]["param_groups"]] == [1e-12]
+    third = replace(stage, init=weights_digest(state["model"]))  # a stage on the stage
+    again = train(tiny_dataset, tmp_path / "ft2.pt", third, init=tmp_path / "ft.pt", progress=False)
+    assert again["lineage"] == [base["config"], state["config"]]
     scratch = train(
         tiny_dataset,
         tmp_path / "scratch.pt",

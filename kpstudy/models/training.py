@@ -12,7 +12,8 @@ AdamW with a one-cycle schedule (``schedule='onecycle'``) or a constant learning
 A run may start from another checkpoint's weights (``init``: the SHA-256 of those weights,
 :func:`weights_digest`; :func:`train` takes the checkpoint's path and checks it), e.g. a
 second, certified stage on top of a natural or lightly certified one. The checkpoint
-records the initial checkpoint's configuration (``init_config``).
+records the configurations of every stage before it (``lineage``, earliest first: the
+initial checkpoint's own lineage, then its configuration).
 
 With ``certified_weight`` > 0 a bound term (:mod:`kpstudy.models.certified`) joins the loss:
 the heatmap loss's worst case, bounded by kpstudy.verify's forward bounds over random
@@ -278,7 +279,7 @@ def train(
     backbone = build_backbone(config.backbone, len(train_set.keypoint_names))
     if state is not None and state["dataset"] != dataset:
         raise ValueError(f"data: {data_dir} is not the dataset checkpoint {out} was trained on")
-    init_config = _initial_weights(backbone, config, init) if state is None else None
+    lineage = _initial_weights(backbone, config, init) if state is None else None
     device = check_device(device)
     backbone = backbone.to(device, memory_format=torch.channels_last)
     optimiser = torch.optim.AdamW(
@@ -293,8 +294,8 @@ def train(
         )
     if state is None:
         state = dict(format=FORMAT, config=asdict(config), dataset=dataset, epoch=0, history=[])
-        if init_config is not None:
-            state["init_config"] = init_config
+        if lineage is not None:
+            state["lineage"] = lineage
     else:
         backbone.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimizer"])
@@ -381,9 +382,10 @@ def weights_digest(model: dict) -> str:
     return digest.hexdigest()
 
 
-def _initial_weights(backbone: nn.Module, config: TrainConfig, init) -> dict | None:
+def _initial_weights(backbone: nn.Module, config: TrainConfig, init) -> list[dict] | None:
     """Load the weights of checkpoint ``init`` into ``backbone`` as ``config.init`` asks;
-    returns the initial checkpoint's configuration (``None`` without ``config.init``)."""
+    returns the configurations of the stages that made them, earliest first (the initial
+    checkpoint's ``lineage``, then its own; ``None`` without ``config.init``)."""
     if config.init is None:
         if init is not None:
             raise ValueError("init: given, but the configuration has no init digest (init=None)")
@@ -404,7 +406,7 @@ def _initial_weights(backbone: nn.Module, config: TrainConfig, init) -> dict | N
             f"expected {config.init[:12]}…"
         )
     backbone.load_state_dict(state["model"])
-    return asdict(config_of(state))
+    return [*state.get("lineage", []), asdict(config_of(state))]
 
 
 def _diverged(out: Path, saved_epoch: int, epoch: int, step: int, what) -> str:

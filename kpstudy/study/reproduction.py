@@ -66,8 +66,10 @@ FRIENDLY_FINETUNE = dict(
     certified_scale=0.5,
     certified_method="zonotope",
 )
-#: The verification-friendly CNN trained on the quick profile's dataset by :data:`FRIENDLY`
-#: then :data:`FRIENDLY_FINETUNE`.
+#: The verification-friendly CNN's stages in order, each from the weights of the one before.
+FRIENDLY_STAGES = (FRIENDLY, FRIENDLY_FINETUNE)
+#: The verification-friendly CNN trained on the quick profile's dataset by
+#: :data:`FRIENDLY_STAGES`.
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_affine_quick.pt"
 
 
@@ -434,13 +436,27 @@ def checkpoints(out: Path) -> dict[str, Path]:
     return {name: Path(out) / "models" / f"{name}.pt" for name in names}
 
 
-def friendly_recipe(prof: Profile):
-    """The verification-friendly CNN's two :class:`kpstudy.models.training.TrainConfig` stages on
-    ``prof``; the second's ``init`` is left ``None`` (the first stage's weights fill it)."""
+def friendly_recipe(prof: Profile) -> tuple:
+    """The verification-friendly CNN's :class:`kpstudy.models.training.TrainConfig` stages
+    (:data:`FRIENDLY_STAGES`) on ``prof``; each ``init`` after the first is left ``None``
+    (the weights of the stage before fill it)."""
     from kpstudy.models.training import TrainConfig
 
     common = dict(images=prof.cnn_images, seed=prof.seed)
-    return TrainConfig(**FRIENDLY, **common), TrainConfig(**FRIENDLY_FINETUNE, **common)
+    return tuple(TrainConfig(**stage, **common) for stage in FRIENDLY_STAGES)
+
+
+def follows_recipe(state: dict, stages) -> bool:
+    """Whether checkpoint ``state`` is the last of ``stages`` (``TrainConfig``s), begun
+    from weights the stages before made in order (its ``lineage``); the ``init`` digests,
+    which name weights trained on some machine, are not compared."""
+    from kpstudy.models.training import config_of
+
+    def unseeded(config):
+        return replace(config_of({"config": config}), init=None)
+
+    made = [*state.get("lineage", []), state["config"]]
+    return [unseeded(c) for c in made] == [replace(c, init=None) for c in stages]
 
 
 def train_models(
@@ -455,7 +471,7 @@ def train_models(
 
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
-    first, second = friendly_recipe(prof)
+    stages = friendly_recipe(prof)
     configs = {
         "cnn": TrainConfig(
             "cnn",
@@ -480,11 +496,9 @@ def train_models(
         state = torch.load(file, map_location="cpu", weights_only=True)
         return config_of(state) == config and state["dataset"]["config"] == dataset
 
-    def friendly(file: Path) -> bool:  # the second stage, from weights of the first
+    def friendly(file: Path) -> bool:
         state = torch.load(file, map_location="cpu", weights_only=True)
-        init = replace(second, init=state["config"].get("init"))
-        made = state.get("init_config")
-        return made_by(file, init) and made is not None and config_of({"config": made}) == first
+        return follows_recipe(state, stages) and state["dataset"]["config"] == dataset
 
     for name, config in configs.items():
         path = paths[name]
@@ -492,20 +506,27 @@ def train_models(
             path.unlink()
         train(out / "data", path, config, device=device, progress=progress)
 
-    # The first stage is written only when it is trained here (not with the shipped one).
-    path, base = paths["cnn_affine"], Path(out) / "models" / "cnn_affine_base.pt"
+    # The earlier stages are written only when they are trained here (not with the
+    # shipped checkpoint): models/cnn_affine_stage1.pt, …
+    path = paths["cnn_affine"]
     if path.is_file() and (retrain_friendly or not friendly(path)):
         path.unlink()
     if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
         write_bytes_atomic(path, SHIPPED.read_bytes())
-    if not path.is_file() or torch.load(path, weights_only=True)["epoch"] < second.epochs:
-        if base.is_file() and not made_by(base, first):
-            base.unlink()
-        state = train(out / "data", base, first, device=device, progress=progress)
-        second = replace(second, init=weights_digest(state["model"]))
-        if path.is_file() and not made_by(path, second):  # begun from other first weights
-            path.unlink()
-        train(out / "data", path, second, init=base, device=device, progress=progress)
+    if path.is_file() and torch.load(path, weights_only=True)["epoch"] >= stages[-1].epochs:
+        return paths
+    init = None
+    for i, stage in enumerate(stages):
+        last = i == len(stages) - 1
+        file = path if last else Path(out) / "models" / f"cnn_affine_stage{i + 1}.pt"
+        if init is not None:
+            stage = replace(
+                stage, init=weights_digest(torch.load(init, weights_only=True)["model"])
+            )
+        if file.is_file() and not made_by(file, stage):  # another recipe's, or begun elsewhere
+            file.unlink()
+        train(out / "data", file, stage, init=init, device=device, progress=progress)
+        init = file
     return paths
 
 
@@ -519,9 +540,9 @@ def probe_input():
 
 def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
     """Write the verification-friendly checkpoint ``checkpoint`` (trained by
-    :data:`FRIENDLY` then :data:`FRIENDLY_FINETUNE` on ``data_dir``) to ``target`` without
-    its optimiser state (the checkpoint is finished), and its card ``target.json``: the
-    recipe (and the first stage's, ``init_recipe``), the test-split
+    :data:`FRIENDLY_STAGES` on ``data_dir``) to ``target`` without its optimiser state (the
+    checkpoint is finished), and its card ``target.json``: the recipe (and the earlier
+    stages', ``lineage``, earliest first), the test-split
     metrics of :func:`kpstudy.models.evaluation.evaluate` and the heatmaps' sum and absolute sum
     on :func:`probe_input`. Returns the card."""
     import torch
@@ -539,7 +560,7 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
         h = backbone(probe_input()).double()
     card = {
         "recipe": state["config"],
-        **({"init_recipe": state["init_config"]} if "init_config" in state else {}),
+        "lineage": state.get("lineage", []),
         "dataset": state["dataset"],
         "test": summary.to_dict(orient="records"),
         "probe": {"sum": float(h.sum()), "abs_sum": float(h.abs().sum())},
