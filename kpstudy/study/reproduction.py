@@ -515,18 +515,15 @@ def train_models(
         write_bytes_atomic(path, SHIPPED.read_bytes())
     if path.is_file() and torch.load(path, weights_only=True)["epoch"] >= stages[-1].epochs:
         return paths
-    init = None
+    init = digest = None  # the stage before: its checkpoint and its weights' digest
     for i, stage in enumerate(stages):
         last = i == len(stages) - 1
         file = path if last else Path(out) / "models" / f"cnn_affine_stage{i + 1}.pt"
-        if init is not None:
-            stage = replace(
-                stage, init=weights_digest(torch.load(init, weights_only=True)["model"])
-            )
+        stage = stage if digest is None else replace(stage, init=digest)
         if file.is_file() and not made_by(file, stage):  # another recipe's, or begun elsewhere
             file.unlink()
-        train(out / "data", file, stage, init=init, device=device, progress=progress)
-        init = file
+        state = train(out / "data", file, stage, init=init, device=device, progress=progress)
+        init, digest = file, weights_digest(state["model"])
     return paths
 
 
