@@ -137,6 +137,14 @@ def main(argv=None) -> int:
         help="epochs over which the hulls grow to full size",
     )
 
+    tr.add_argument(
+        "--stability-weight",
+        type=float,
+        default=default.stability_weight,
+        help="share of a first-layer ReLU stability term over brightness and contrast hulls "
+        "(default 0: none)",
+    )
+
     ev = sub.add_parser("evaluate", help="keypoint and pose metrics of a trained checkpoint")
     ev.add_argument("--checkpoint", required=True)
     ev.add_argument("--data", required=True, help="dataset folder")

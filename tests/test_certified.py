@@ -16,6 +16,8 @@ from kpstudy.models.certified import (
     bound_graph,
     hull_bounds,
     occluder_patches,
+    photometric_pair,
+    relu_instability,
     robust_heatmap_loss,
 )
 from kpstudy.models.training import TrainConfig, config_of, heatmap_loss, load_checkpoint, train
@@ -217,10 +219,12 @@ def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_pa
         certified_start=0,
         certified_ramp=1,
         certified_scale=0.05,
+        stability_weight=1.0,
     )
     path = tmp_path / "cnn_affine.pt"
     state = train(tiny_dataset, path, config, progress=False)
     assert all(np.isfinite(row["bound_loss"]) for row in state["history"])
+    assert all(0 <= row["instability"] < np.inf for row in state["history"])
     backbone, saved = load_checkpoint(path)
     assert saved["config"]["certified_weight"] == 0.5
     summary = evaluate(path, tiny_dataset, "test")[0]
@@ -241,12 +245,86 @@ def test_the_bound_terms_gradient_is_a_fixed_share_of_the_natural_ones():
     w = torch.tensor([1.0, 2.0], requires_grad=True)
     natural = (w**2).sum()  # gradient (2, 4)
     bound = 1e6 * w[0]  # gradient (1e6, 0): far larger
-    _backward(natural, bound, 0.5, [w])
+    _backward(natural, [(bound, 0.5)], [w])
     share = 0.5 * torch.tensor([2.0, 4.0]).norm() / 1e6
     torch.testing.assert_close(w.grad, torch.tensor([2.0 + share * 1e6, 4.0]))
     w.grad = None
-    _backward((w**2).sum(), None, 0.5, [w])
+    _backward((w**2).sum(), [(None, 0.5)], [w])
     torch.testing.assert_close(w.grad, torch.tensor([2.0, 4.0]))
+    # Two terms: each gets its own share of the natural gradient's norm.
+    w.grad = None
+    _backward((w**2).sum(), [(1e6 * w[0], 0.5), (-3.0 * w[1], 2.0)], [w])
+    natural_norm = torch.tensor([2.0, 4.0]).norm()
+    expected = torch.tensor([2.0 + 0.5 * natural_norm, 4.0 - 2.0 * natural_norm])
+    torch.testing.assert_close(w.grad, expected)
+
+
+def test_photometric_pairs_are_the_studys_brightness_and_contrast_hulls():
+    rng = np.random.default_rng(0)
+    image = np.random.default_rng(1).uniform(0, 1, (3, 8, 8)).astype(np.float32)
+    image[0, 0, 0], image[1, 0, 0] = 0.0, 1.0  # clipped pixels stay in [0, 1]
+    bright = photometric_pair(image, "brightness", rng)
+    d = bright[0] - image
+    assert bright.shape == (2, 3, 8, 8) and 0 <= bright.min() and bright.max() <= 1
+    inner = (image > 2 / 255) & (image < 1 - 2 / 255)
+    assert np.ptp(d[inner]) < 1e-6 and 0 < d[inner][0] <= 2 / 255 + 1e-7
+    np.testing.assert_allclose(bright[1][inner], image[inner] - d[inner][0], atol=1e-6)
+    dark = photometric_pair(image, "contrast", rng)
+    ratio = dark[0][image > 0.1] / image[image > 0.1]
+    assert np.ptp(ratio[dark[0][image > 0.1] < 1]) < 1e-5 and 1 < ratio.max() <= 1.01 + 1e-6
+    with pytest.raises(ValueError, match="kind: expected one of"):
+        photometric_pair(image, "objects", rng)
+
+
+def test_relu_instability_is_the_exact_band_of_an_affine_layer_over_the_hull():
+    layer = nn.Sequential(nn.Conv2d(3, 4, 3, 1, 1), nn.BatchNorm2d(4)).eval()
+    torch.manual_seed(3)
+    x = torch.rand(2, 3, 6, 6)
+    pairs = torch.stack([(x + 0.2).clamp(0, 1), (x - 0.3).clamp(0, 1)], 1)  # (B, 2, 3, 6, 6)
+    with torch.no_grad():
+        centre = layer(x)
+        deltas = torch.stack([layer(pairs[:, i]) - centre for i in range(2)], 1)
+        low = centre + deltas.amin(1).clamp_max(0)
+        high = centre + deltas.amax(1).clamp_min(0)
+        for b in range(2):  # the band holds every image of the hull and is reached
+            hull = ConvexHull(torch.cat([x[b : b + 1], pairs[b]]))
+            inside = layer(hull.image(hull.sample(256, seed=b).float()))
+            assert (inside >= low[b] - 1e-5).all() and (inside <= high[b] + 1e-5).all()
+            corners = layer(torch.cat([x[b : b + 1], pairs[b]]))
+            assert torch.isclose(corners.amin(0), low[b], atol=1e-5).all()
+    unstable = (low < 0) & (high > 0)
+    assert unstable.any() and (~unstable).any()
+    depth = torch.minimum(-low, high).clamp_min(0)  # zero where stable
+    spread = centre.std((0, 2, 3), keepdim=True)
+    torch.testing.assert_close(relu_instability(centre, deltas), (depth / spread).mean())
+    assert relu_instability(centre.abs() + 1, deltas.clamp(-0.5, 0.5)) == 0  # all stable
+
+
+def test_a_gradient_step_on_the_stability_term_lowers_it():
+    from kpstudy.models.training import _StabilityTerm
+
+    net = SmallHeatmapNet().net.train()
+    term = _StabilityTerm(TrainConfig("cnn_affine", stability_weight=1.0, seed=4), net)
+    torch.manual_seed(5)
+    x = torch.rand(8, 3, 8, 8)
+
+    def value():
+        term.reseed(0)
+        net(x)  # the natural pass the term reads
+        return term(x)
+
+    before = value()
+    assert before > 0
+    before.backward()
+    with torch.no_grad():
+        for p in net.parameters():
+            if p.grad is not None:
+                p -= 0.05 * p.grad
+    assert value() < before
+    with pytest.raises(ValueError, match="stability_weight: expected a backbone that starts"):
+        _StabilityTerm(TrainConfig(stability_weight=1.0), nn.Sequential(nn.ReLU()))
+    with pytest.raises(ValueError, match="stability_weight"):
+        TrainConfig(stability_weight=-1.0)
 
 
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():

@@ -26,11 +26,11 @@ import torch
 from kpstudy.verify.bounds import Region, propagate
 from kpstudy.verify.graph import Graph, trace
 
-#: Hull kinds drawn by :class:`HullSampler` and their probabilities.
 #: Bound methods of the term (:func:`hull_bounds`).
 BOUND_METHODS = ("zonotope", "forward")
-
+#: Hull kinds drawn by :class:`HullSampler` and their probabilities.
 KINDS = {"objects": 0.5, "blocks": 0.2, "brightness": 0.15, "contrast": 0.15}
+PHOTOMETRIC = ("brightness", "contrast")  # the kinds that change every pixel a little
 MAX_COPIES = 4  # perturbed images of an object or block hull (the study's m ≤ 4)
 BLOCK = 3  # side of a pixel block, input pixels (data_gen.perturb.BLOCK)
 BRIGHTNESS = 2.0 / 255  # the study's largest brightness change, in [0, 1] units
@@ -57,6 +57,39 @@ def occluder_patches(px_per_m: float = 3.0, seed: int = 0) -> list[np.ndarray]:
         if patch.size:
             patches.append(patch)
     return patches
+
+
+def photometric_pair(image: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
+    """The two perturbed images ``(2, 3, s, s)`` of a random brightness (``image ± d``,
+    ``d`` uniform in [0, :data:`BRIGHTNESS`]) or contrast (``image · (1 ± c)``, ``c`` uniform
+    in [0, :data:`CONTRAST`]) hull around ``image (3, s, s)`` in [0, 1], clipped to [0, 1]."""
+    if kind == "brightness":
+        d = rng.uniform(0, BRIGHTNESS)
+        return np.stack([np.clip(image + d, 0, 1), np.clip(image - d, 0, 1)])
+    if kind == "contrast":
+        c = rng.uniform(0, CONTRAST)
+        return np.stack([np.clip(image * (1 + c), 0, 1), np.clip(image * (1 - c), 0, 1)])
+    raise ValueError(f"kind: expected one of {PHOTOMETRIC}, got {kind!r}")
+
+
+def relu_instability(centre: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+    """How deep the ReLUs after an affine layer sit inside their unstable band over a hull.
+
+    ``centre (B, C, *S)``: the layer's pre-activations at each hull's first vertex (the
+    image), ``C`` channels; ``deltas (B, n, C, *S)``: their changes at its other ``n``
+    vertices. An affine map takes its extremes on a simplex at the vertices, so over the
+    hull each pre-activation spans exactly ``[l, u] = centre + [min(0, δ), max(0, δ)]`` and
+    its ReLU is unstable where ``l < 0 < u`` (a ReLU stability term, after Xiao et al.
+    2019). Returns the mean over hulls and units of ``min(−l, u)⁺``, the distance to the
+    nearer end of the band (0 for a stable ReLU), in units of its channel's spread over the
+    batch (a constant): a scalar whose gradient narrows the band and moves its centre out.
+    """
+    low = centre + deltas.amin(1).clamp_max(0.0)
+    high = centre + deltas.amax(1).clamp_min(0.0)
+    depth = torch.minimum(-low, high).clamp_min(0.0)
+    dims = [d for d in range(centre.ndim) if d != 1]
+    spread = centre.detach().std(dims, keepdim=True).clamp_min(1e-12)
+    return (depth / spread).mean()
 
 
 class HullSampler:
@@ -98,12 +131,8 @@ class HullSampler:
         kinds, p = list(KINDS), np.array(list(KINDS.values()))
         for b in range(len(x)):
             kind = kinds[self.rng.choice(len(kinds), p=p / p.sum())]
-            if kind == "brightness":
-                d = self.rng.uniform(0, BRIGHTNESS)
-                out[b, 1], out[b, 2] = np.clip(x[b] + d, 0, 1), np.clip(x[b] - d, 0, 1)
-            elif kind == "contrast":
-                c = self.rng.uniform(0, CONTRAST)
-                out[b, 1], out[b, 2] = np.clip(x[b] * (1 + c), 0, 1), np.clip(x[b] * (1 - c), 0, 1)
+            if kind in PHOTOMETRIC:
+                out[b, 1:3] = photometric_pair(x[b], kind, self.rng)
             else:
                 paint = self._paste if kind == "objects" else self._block
                 for k in range(1, 1 + self.rng.integers(1, MAX_COPIES + 1)):

@@ -27,6 +27,13 @@ slow while the bounds are loosest). A scale below 1 bounds sub-hulls around the 
 as SABR (Müller et al. 2023) bounds small boxes: a weaker term that costs less accuracy
 and, measured here, still tightens the bounds over the whole hulls.
 
+With ``stability_weight`` > 0 a second term joins from the first epoch: the first
+layer's ReLU instability (:func:`kpstudy.models.certified.relu_instability`) over a
+random brightness or contrast hull around every image of the batch, exact because the
+layer is affine, its gradient rescaled the same way. Those hulls change every pixel a
+little, and each first-layer ReLU they can flip costs the verifier an error symbol that
+later layers widen (docs/findings.md: 7.5× the natural CNN's count on the friendly CNN).
+
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
 the metric history; training again with the same configuration resumes from it.
@@ -75,6 +82,8 @@ class TrainConfig:
     saturation jitter strength. ``noise``: Gaussian noise std on the [0, 1] input.
     ``certified_*``: the bound term (module docstring); ``certified_weight`` is the norm of
     its gradient as a fraction of the natural loss's gradient norm; 0 trains naturally.
+    ``stability_weight``: the same share for the first layer's ReLU stability term over
+    brightness and contrast hulls (module docstring); 0 leaves it out.
     ``schedule``: ``'onecycle'`` (peak ``lr``) or ``'constant'``. ``precision``: the
     forward pass of the natural loss in ``'float32'`` or under ``'bfloat16'`` autocast
     (weights, optimiser and loss stay float32; ~1.8× faster steps on a CPU with AVX-512
@@ -101,6 +110,7 @@ class TrainConfig:
     certified_scale: float = 1.0
     certified_method: str = "zonotope"
     certified_scale_from: float = 0.0
+    stability_weight: float = 0.0
     schedule: str = "onecycle"
     init: str | None = None
     precision: str = "float32"
@@ -157,7 +167,14 @@ class TrainConfig:
             raise ValueError(
                 f"certified_start: expected an integer >= 0, got {self.certified_start!r}"
             )
-        for name in ("weight_decay", "dsnt_weight", "jitter", "noise", "certified_weight"):
+        for name in (
+            "weight_decay",
+            "dsnt_weight",
+            "jitter",
+            "noise",
+            "certified_weight",
+            "stability_weight",
+        ):
             if not (_finite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(
                     f"{name}: expected a number >= 0 (finite), got {getattr(self, name)!r}"
@@ -302,6 +319,7 @@ def train(
         scheduler.load_state_dict(state["scheduler"])
     augment = _augmentation(config).to(device)
     certify = _CertifiedTerm(config, backbone, train_set) if config.certified_weight else None
+    stabilise = _StabilityTerm(config, backbone) if config.stability_weight else None
     weights = torch.from_numpy((train_set.visibility > 0).astype(np.float32)).to(device)
     keypoints = torch.from_numpy(train_set.keypoints.astype(np.float32)).to(device)
     low_precision = config.precision == "bfloat16"
@@ -311,8 +329,10 @@ def train(
         order = torch.randperm(len(train_set))
         if certify is not None:
             certify.sampler.reseed(epoch)
+        if stabilise is not None:
+            stabilise.reseed(epoch)
         backbone.train()
-        bound_total = 0.0
+        bound_total = stability_total = 0.0
         total, bar = (
             0.0,
             tqdm(range(steps), desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress),
@@ -336,8 +356,13 @@ def train(
                 bound_total += bound.item() * len(idx)
             else:
                 bound = None
+            terms = [(bound, config.certified_weight)]
+            if stabilise is not None:
+                unstable = stabilise(x)
+                stability_total += unstable.item() * len(idx)
+                terms.append((unstable, config.stability_weight))
             optimiser.zero_grad(set_to_none=True)
-            _backward(loss, bound, config.certified_weight, list(backbone.parameters()))
+            _backward(loss, terms, list(backbone.parameters()))
             optimiser.step()
             scheduler.step()
             value = loss.item()
@@ -352,6 +377,7 @@ def train(
             loss=total / len(train_set),
             seconds=time.perf_counter() - start,
             **({"bound_loss": bound_total / len(train_set)} if certify is not None else {}),
+            **({"instability": stability_total / len(train_set)} if stabilise else {}),
             **{f"val_{k}": v for k, v in pck(arg, val_set.keypoints, vis).items()},
             val_dsnt_mean_error=pck(dsnt, val_set.keypoints, vis)["mean_error"],
         )
@@ -523,26 +549,33 @@ def _save(path: Path, state: dict) -> None:
     write_bytes_atomic(path, buffer.getvalue())
 
 
-def _backward(loss, bound, weight: float, params: list) -> None:
-    """Gradients of ``loss``, plus those of ``bound`` (if any) rescaled to ``weight`` times
-    their norm: the bound term pushes with a fixed share of the natural term's strength.
+def _backward(loss, terms, params: list) -> None:
+    """Gradients of ``loss``, plus those of each ``(term, weight)`` of ``terms`` (a term
+    may be None) rescaled to ``weight`` times the natural gradient's norm: each term pushes
+    with a fixed share of the natural term's strength.
 
     Forward bounds of a trained network are loose by 10⁴–10⁶ even on tiny hulls, and the
     bound term's gradient was measured 10³–10⁶× the natural loss's (0.53) at hull scales
     10⁻⁴–10⁻² where its value is within 1–2·10⁴ of it; added with any fixed weight it
     swamps the natural gradient (validation PCK@2 0.98 → 0.1–0.4 within an epoch)."""
-    if bound is None:
+    terms = [(term, weight) for term, weight in terms if term is not None]
+    if not terms:
         loss.backward()
         return
-    natural = torch.autograd.grad(loss, params, allow_unused=True)
-    certified = torch.autograd.grad(bound, params, allow_unused=True)
+    retain = dict(retain_graph=True, allow_unused=True)
+    natural = torch.autograd.grad(loss, params, **retain)
     norm = lambda gs: torch.sqrt(sum((g**2).sum() for g in gs if g is not None))  # noqa: E731
-    factor = weight * norm(natural) / norm(certified).clamp_min(1e-30)
-    if not torch.isfinite(factor):
-        factor = torch.zeros(())
-    for p, g, c in zip(params, natural, certified):
-        total = g if c is None else (c * factor if g is None else g + factor * c)
-        p.grad = total
+    total = list(natural)
+    for term, weight in terms:
+        grads = torch.autograd.grad(term, params, **retain)
+        factor = weight * norm(natural) / norm(grads).clamp_min(1e-30)
+        if not torch.isfinite(factor):
+            factor = torch.zeros(())
+        for i, c in enumerate(grads):
+            if c is not None:
+                total[i] = c * factor if total[i] is None else total[i] + factor * c
+    for p, g in zip(params, total):
+        p.grad = g
 
 
 class _CertifiedTerm:
@@ -576,6 +609,57 @@ class _CertifiedTerm:
         with self.statistics.frozen():
             lower, upper = hull_bounds(self.graph, vertices, scale, self.method)
         return robust_heatmap_loss(lower, upper, keypoints[:n], weights[:n], self.sigma)
+
+
+class _StabilityTerm:
+    """The first layer's ReLU instability over a random brightness or contrast hull
+    around every image of a batch (:func:`kpstudy.models.certified.relu_instability`):
+    the layer's pre-activations at the image are the natural pass's (a forward hook on
+    its batch norm), their changes at the hull's other vertices the convolution of the
+    image differences scaled by the batch norm with the batch's statistics."""
+
+    def __init__(self, config: TrainConfig, backbone: nn.Module):
+        first = list(backbone.children())[:2]
+        if not (
+            len(first) == 2
+            and isinstance(first[0], nn.Conv2d)
+            and isinstance(first[1], nn.BatchNorm2d)
+        ):
+            raise ValueError(
+                f"stability_weight: expected a backbone that starts with a convolution and a "
+                f"batch norm, got {config.backbone!r}"
+            )
+        self.conv, self.norm = first
+        self.seed = config.seed
+        self.norm.register_forward_hook(self._record)
+        self.reseed(0)
+
+    def reseed(self, epoch: int) -> None:
+        """Draw from the stream of ``epoch`` (a resumed run draws the same hulls)."""
+        self.rng = np.random.default_rng([self.seed, 13, epoch])
+
+    def _record(self, m, inputs, output) -> None:
+        if m.training:
+            self.centre = output
+            self.var = inputs[0].detach().float().var((0, 2, 3), unbiased=False)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        """The term on batch ``x (B, 3, s, s)`` in [0, 1], after its natural pass."""
+        from kpstudy.models.certified import PHOTOMETRIC, photometric_pair, relu_instability
+
+        images = x.detach().float().cpu().numpy()
+        kinds = self.rng.integers(len(PHOTOMETRIC), size=len(images))
+        pairs = np.stack(
+            [photometric_pair(im, PHOTOMETRIC[k], self.rng) for im, k in zip(images, kinds)]
+        )
+        diff = torch.from_numpy(pairs).to(x.device) - x.detach().float()[:, None]
+        conv = self.conv
+        moved = nn.functional.conv2d(
+            diff.flatten(0, 1), conv.weight, None, conv.stride, conv.padding, conv.dilation
+        )
+        gain = self.norm.weight / torch.sqrt(self.var + self.norm.eps)
+        deltas = (moved * gain[:, None, None]).unflatten(0, (len(x), 2))
+        return relu_instability(self.centre.float(), deltas)
 
 
 def _augmentation(config: TrainConfig) -> nn.Module:
