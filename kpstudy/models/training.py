@@ -377,7 +377,7 @@ def train(
             loss=total / len(train_set),
             seconds=time.perf_counter() - start,
             **({"bound_loss": bound_total / len(train_set)} if certify is not None else {}),
-            **({"instability": stability_total / len(train_set)} if stabilise else {}),
+            **({"instability": stability_total / len(train_set)} if stabilise is not None else {}),
             **{f"val_{k}": v for k, v in pck(arg, val_set.keypoints, vis).items()},
             val_dsnt_mean_error=pck(dsnt, val_set.keypoints, vis)["mean_error"],
         )

@@ -438,13 +438,12 @@ def checkpoints(out: Path) -> dict[str, Path]:
 
 def friendly_recipe(prof: Profile) -> tuple:
     """The verification-friendly CNN's :class:`kpstudy.models.training.TrainConfig` stages
-    (:data:`FRIENDLY_STAGES`) on ``prof``: the profile's training images and seed, unless
-    a stage sets its own; each ``init`` after the first is left ``None`` (the weights of
-    the stage before fill it)."""
+    (:data:`FRIENDLY_STAGES`) on ``prof``; each ``init`` after the first is left ``None``
+    (the weights of the stage before fill it)."""
     from kpstudy.models.training import TrainConfig
 
     common = dict(images=prof.cnn_images, seed=prof.seed)
-    return tuple(TrainConfig(**{**common, **stage}) for stage in FRIENDLY_STAGES)
+    return tuple(TrainConfig(**stage, **common) for stage in FRIENDLY_STAGES)
 
 
 def follows_recipe(state: dict, stages) -> bool:
