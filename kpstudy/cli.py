@@ -69,7 +69,9 @@ def main(argv=None) -> int:
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
     tr.add_argument(
-        "--backbone", default=default.backbone, help="cnn (default), cnn_affine or resnet18"
+        "--backbone",
+        default=default.backbone,
+        help="cnn (default), cnn_affine, cnn_patch or resnet18",
     )
     tr.add_argument("--epochs", type=int, default=default.epochs)
     tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")

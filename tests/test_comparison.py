@@ -18,7 +18,7 @@ def local_records(pose_bound: bool = True) -> pd.DataFrame:
     α = 1.5, refuting at the seed (λ = 0) elsewhere; pb holds unless overlapping."""
     rows = []
     grid = itertools.product(
-        ("cnn", "cnn_affine"), ("heatmap", "paper"), (False, True), (1.0, 1.5), (1.0, 1.5)
+        ("cnn", "cnn_patch"), ("heatmap", "paper"), (False, True), (1.0, 1.5), (1.0, 1.5)
     )
     for model, units, overlapping, kappa, alpha in grid:
         for seed in range(2):
@@ -69,7 +69,7 @@ def test_tables_split_times_by_status(table):
 def test_method_cells_has_every_method(table):
     cells = comparison.method_cells(table)
     methods = cells.groupby("model")["method"].unique()
-    for model in ("cnn", "cnn_affine"):
+    for model in ("cnn", "cnn_patch"):
         assert list(methods[model]) == ["alloc (heatmap)", "alloc (paper)", "pb"]
     pb = cells[(cells.method == "pb") & (cells.model == "cnn")]
     assert len(pb) == 8  # 2 overlap classes × 2 κ × 2 α
@@ -107,7 +107,7 @@ def test_figure_shows_every_method_beside_the_paper(table):
     fig = comparison.plot_comparison(table, "T-local", hardware="2 CPU cores")
     assert isinstance(fig, Figure)
     titles = [ax.get_title() for ax in fig.axes]
-    for model in ("cnn", "cnn_affine"):
+    for model in ("cnn", "cnn_patch"):
         for method in ("alloc (heatmap)", "alloc (paper)", "pb"):
             assert any(t.startswith(f"{model}: {method}\n") for t in titles), (model, method)
     assert sum(t.startswith("paper (RTX A4000)") for t in titles) == 2

@@ -78,7 +78,7 @@ def test_report_shows_figure_compact_table_and_links(tmp_path):
         f"{100 * (0.5 - paper):+.0f} pp | 30 | 0.1 | {paper_s:.3g} |"
     )
     assert row in text
-    assert "| cnn_affine | pb | 16 | 8 / 0 / 8 | 8 | 50% |" in text
+    assert "| cnn_patch | pb | 16 | 8 / 0 / 8 | 8 | 50% |" in text
     assert "<details><summary>Full table <code>t_local</code>" in text
     assert (out / "tables" / "t_local.md").read_text().strip() in text
     assert "*Figure `t_local_pose_bound` is missing.*" in text
@@ -98,7 +98,7 @@ def test_readings_test_the_papers_trends_on_the_numbers(tmp_path):
         "the paper's numbers",
         *(
             f"{model} {method}"
-            for model in ("cnn", "cnn_affine")
+            for model in ("cnn", "cnn_patch")
             for method in ("alloc (heatmap)", "alloc (paper)", "pb")
         ),
     ]

@@ -144,7 +144,7 @@ def test_a_cell_without_a_seed_inside_has_no_rate():
 
 def test_t_global_has_a_row_per_model_reading_and_cell_with_the_papers_numbers():
     rows = []
-    for model in ("cnn", "cnn_affine"):
+    for model in ("cnn", "cnn_patch"):
         for units, kappa, status in ((None, 1.0, "holds"), ("heatmap", 1.0, "violated")):
             rows.append(_record(status, True, model=model, tolerance_units=units, kappa=kappa))
         rows.append(_record("holds", True, model=model, tolerance_units="paper", kappa=1.5))
@@ -161,16 +161,16 @@ def test_t_global_has_a_row_per_model_reading_and_cell_with_the_papers_numbers()
         ("cnn", "heatmap", "brightness", 1.0),
         ("cnn", "heatmap", "contrast", 1.0),
         ("cnn", "paper", "contrast", 1.5),
-        ("cnn_affine", "heatmap", "brightness", 1.0),
-        ("cnn_affine", "heatmap", "contrast", 1.0),
-        ("cnn_affine", "paper", "contrast", 1.5),
+        ("cnn_patch", "heatmap", "brightness", 1.0),
+        ("cnn_patch", "heatmap", "contrast", 1.0),
+        ("cnn_patch", "paper", "contrast", 1.5),
     ]
     assert list(table.instances) == [1, 2, 1, 1, 2, 1]  # the objects record is not global
     assert list(table.holds) == [1, 1, 1, 1, 1, 1] and list(table.verified_rate[1:3]) == [0.5, 1]
     assert list(table.paper_rate[:3]) == [0.560, 0.570, 0.173]  # (kind, level, κ, α = 1)
     assert list(table.paper_time_mean[:3]) == [223.4, 79.7, 133.9]
     assert list(table.paper_time_std[:3]) == [301.9, 105.5, 95.5]
-    # Mean over the cell's records (0.1 × their row): cnn's are rows 0–3, cnn_affine's 4–7.
+    # Mean over the cell's records (0.1 × their row): cnn's are rows 0–3, cnn_patch's 4–7.
     np.testing.assert_allclose(table.clipped_fraction, [0.3, 0.05, 0.2, 0.7, 0.45, 0.6])
 
 

@@ -2,12 +2,13 @@
 
 from torch import nn
 
-from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder
+from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder, HeatmapCNNPatchDecoder
 from kpstudy.models.resnet import HeatmapResNet18
 
 BACKBONES = {
     "cnn": HeatmapCNN,
     "cnn_affine": HeatmapCNNAffineDecoder,
+    "cnn_patch": HeatmapCNNPatchDecoder,
     "resnet18": HeatmapResNet18,
 }
 
@@ -17,11 +18,13 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
 
     Parameters
     ----------
-    name : {'cnn', 'cnn_affine', 'resnet18'}
+    name : {'cnn', 'cnn_affine', 'cnn_patch', 'resnet18'}
         ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'cnn_affine'``: the same
-        with an affine decoder (no ReLU after the transposed convolutions, the
-        verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps, ~1.25e7
-        parameters.
+        with an affine decoder (no ReLU after the transposed convolutions);
+        ``'cnn_patch'``: the same encoder with an affine decoder whose transposed
+        convolutions' kernels equal their strides, ~3.6e5 parameters (the
+        verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps,
+        ~1.25e7 parameters.
     num_keypoints : int
         Heatmap channels.
 

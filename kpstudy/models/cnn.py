@@ -5,10 +5,13 @@ Input ``(B, 3, 64, 64)`` (a normalised, resized image) → unnormalised heatmaps
 transposed convolutions back to 64 px; batch norm and ReLU after every layer but the
 last. About 6.6e5 parameters for K = 23, as in the paper (6.57e5).
 
-:class:`HeatmapCNNAffineDecoder` is the verification-friendly variant: the same layers
-with no ReLU after the transposed convolutions, so the decoder (its batch norms folded)
-is one affine map, a learned linear upsampler. Every bound method maps a zonotope through
-it exactly: the heatmaps' bounds are as tight as the encoder's.
+:class:`HeatmapCNNAffineDecoder`: the same layers with no ReLU after the transposed
+convolutions, so the decoder (its batch norms folded) is one affine map, a learned linear
+upsampler. Every bound method maps a zonotope through it exactly: the heatmaps' bounds are
+as tight as the encoder's. :class:`HeatmapCNNPatchDecoder`, the verification-friendly
+model kpstudy ships, also makes every transposed convolution's kernel its stride, so each
+encoder position drives its own 4×4 patch of the heatmaps and the zonotope's error
+symbols cost the decoder about a tenth of the multiply-adds.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ class HeatmapCNN(HeatmapBackbone):
     heatmap_size = 64
 
     decoder_relu = True
+    #: Transposed convolutions' kernel sizes for stride 2 and stride 1.
+    decoder_kernels = (4, 3)
 
     def __init__(self, keypoints: int = 23) -> None:
         layers: list[nn.Module] = []
@@ -47,12 +52,14 @@ class HeatmapCNN(HeatmapBackbone):
             layers += [nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out)]
             layers.append(nn.ReLU())
         for c_in, c_out, stride in _DECODER:
-            kernel = 4 if stride == 2 else 3
-            layers.append(nn.ConvTranspose2d(c_in, c_out, kernel, stride, 1, bias=False))
+            kernel = self.decoder_kernels[0] if stride == 2 else self.decoder_kernels[1]
+            pad = (kernel - stride) // 2
+            layers.append(nn.ConvTranspose2d(c_in, c_out, kernel, stride, pad, bias=False))
             layers.append(nn.BatchNorm2d(c_out))
             if self.decoder_relu:
                 layers.append(nn.ReLU())
-        layers.append(nn.ConvTranspose2d(_DECODER[-1][1], keypoints, 3, 1, 1))
+        kernel = self.decoder_kernels[1]
+        layers.append(nn.ConvTranspose2d(_DECODER[-1][1], keypoints, kernel, 1, (kernel - 1) // 2))
         super().__init__(*layers)
         self.keypoints = keypoints
 
@@ -62,3 +69,15 @@ class HeatmapCNNAffineDecoder(HeatmapCNN):
     the same parameters, the heatmaps an affine function of the encoder's last ReLU."""
 
     decoder_relu = False
+
+
+class HeatmapCNNPatchDecoder(HeatmapCNNAffineDecoder):
+    """:class:`HeatmapCNNAffineDecoder` with transposed convolutions whose kernel equals
+    their stride (2×2 at stride 2, 1×1 at stride 1): ``(B, 3, 64, 64) → (B, K, 64, 64)``.
+
+    The decoder maps each encoder position's 128 features to its own 4×4 patch of the
+    heatmaps (one affine map per position, shared), so an error symbol's window does not
+    grow through it and a zonotope costs about a tenth of :class:`HeatmapCNNAffineDecoder`'s
+    multiply-adds there; ~3.6e5 parameters for K = 23."""
+
+    decoder_kernels = (2, 1)

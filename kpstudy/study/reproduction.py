@@ -7,7 +7,7 @@ Stages, in order; each is skipped when its outputs are current:
    input, brightness and contrast at the CNN input). Reused when its settings match.
 2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.models.training.train`,
    which resumes an interrupted run and returns a finished one as it is), and the
-   verification-friendly CNN (:data:`FRIENDLY`: the affine-decoder CNN trained with the
+   verification-friendly CNN (:data:`FRIENDLY`: the patch-decoder CNN trained with the
    bound term of :mod:`kpstudy.models.certified`). Its quick-profile checkpoint ships with
    kpstudy (:data:`SHIPPED`) and is copied when it was made by the same recipe on the
    same dataset; otherwise, or with ``retrain_friendly``, it is trained.
@@ -42,7 +42,7 @@ STAGES = ("data", "train", "notebooks", "report")
 #: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
 #: 5 % of the hulls' size (docs/findings.md says how it was chosen).
 FRIENDLY = dict(
-    backbone="cnn_affine",
+    backbone="cnn_patch",
     epochs=20,
     certified_weight=2.0,
     certified_scale=0.05,
@@ -54,7 +54,7 @@ FRIENDLY = dict(
 #: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, at a constant
 #: learning rate (sub-hulls of about half the trained scale become exact).
 FRIENDLY_FINETUNE = dict(
-    backbone="cnn_affine",
+    backbone="cnn_patch",
     epochs=2,
     lr=3e-4,
     schedule="constant",
@@ -70,7 +70,7 @@ FRIENDLY_FINETUNE = dict(
 FRIENDLY_STAGES = (FRIENDLY, FRIENDLY_FINETUNE)
 #: The verification-friendly CNN trained on the quick profile's dataset by
 #: :data:`FRIENDLY_STAGES`.
-SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_affine_quick.pt"
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_patch_quick.pt"
 
 
 @dataclass(frozen=True)
@@ -92,7 +92,7 @@ class Profile:
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
         run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
-    local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_affine'``), the
+    local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_patch'``), the
         pose-bound method's :class:`kpstudy.study.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
@@ -170,9 +170,9 @@ class Profile:
         settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
         for name in ("local_pose_bound", "global_pose_bound"):
             for model, chosen in getattr(self, name).items():
-                if model not in ("cnn", "cnn_affine") or not isinstance(chosen, dict):
+                if model not in ("cnn", "cnn_patch") or not isinstance(chosen, dict):
                     raise ValueError(
-                        f"{name}: expected {{'cnn' or 'cnn_affine': {{setting: value}}}}, got "
+                        f"{name}: expected {{'cnn' or 'cnn_patch': {{setting: value}}}}, got "
                         f"{model!r}: {chosen!r}"
                     )
                 unknown = sorted(set(chosen) - settings)
@@ -197,12 +197,11 @@ class Profile:
 #: each: docs/findings.md), the verification-friendly CNN with the zonotope on the
 #: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
 #: scale its bound term was trained on), then up to 48 nodes aimed at the cells that keep
-#: an `unknown` open (seed 481, m = 2 needs 20 under the enumeration rule; seed 935, m = 3
-#: overlapping 12 under the linearised one). Node budgets give the same verdicts on any
-#: machine; the seconds only cap a slow one.
+#: an `unknown` open (seed 481, m = 2 at α = 1.5 needs 12 under the enumeration rule).
+#: Node budgets give the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
-    "cnn_affine": dict(
+    "cnn_patch": dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=600.0,
         pose_bound_nodes=16,
@@ -217,7 +216,7 @@ LOCAL_POSE_BOUND = {
 #: (at 120 s the cap ended 4 to 12 hulls' searches).
 GLOBAL_POSE_BOUND = {
     model: dict(pose_bound_method="zonotope", pose_bound_timeout=300.0, pose_bound_nodes=3)
-    for model in ("cnn", "cnn_affine")
+    for model in ("cnn", "cnn_patch")
 }
 
 PROFILES = {
@@ -255,11 +254,11 @@ PROFILES = {
         resnet_timeout=3600.0,
         local_pose_bound={
             model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
-            for model in ("cnn", "cnn_affine")
+            for model in ("cnn", "cnn_patch")
         },
         global_pose_bound={
             model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
-            for model in ("cnn", "cnn_affine")
+            for model in ("cnn", "cnn_patch")
         },
         symmetry_backbone="resnet18",
         figure_images=3000,
@@ -432,7 +431,7 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
 
 def checkpoints(out: Path) -> dict[str, Path]:
     """Where the train stage writes each backbone's checkpoint."""
-    names = ("cnn", "cnn_affine", "resnet18")
+    names = ("cnn", "cnn_patch", "resnet18")
     return {name: Path(out) / "models" / f"{name}.pt" for name in names}
 
 
@@ -507,8 +506,8 @@ def train_models(
         train(out / "data", path, config, device=device, progress=progress)
 
     # The earlier stages are written only when they are trained here (not with the
-    # shipped checkpoint): models/cnn_affine_stage1.pt, …
-    path = paths["cnn_affine"]
+    # shipped checkpoint): models/cnn_patch_stage1.pt, …
+    path = paths["cnn_patch"]
     if path.is_file() and (retrain_friendly or not friendly(path)):
         path.unlink()
     if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
@@ -518,7 +517,7 @@ def train_models(
     init = digest = None  # the stage before: its checkpoint and its weights' digest
     for i, stage in enumerate(stages):
         last = i == len(stages) - 1
-        file = path if last else Path(out) / "models" / f"cnn_affine_stage{i + 1}.pt"
+        file = path if last else Path(out) / "models" / f"cnn_patch_stage{i + 1}.pt"
         stage = stage if digest is None else replace(stage, init=digest)
         if file.is_file() and not made_by(file, stage):  # another recipe's, or begun elsewhere
             file.unlink()
@@ -584,7 +583,7 @@ def run_notebooks(
     campaign = dict(workers=prof.workers, scheduler=scheduler, method=prof.method, nodes=prof.nodes)
     cnn_campaign = dict(
         data_dir=data_dir,
-        checkpoints={name: models[name] for name in ("cnn", "cnn_affine")},
+        checkpoints={name: models[name] for name in ("cnn", "cnn_patch")},
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound=prof.local_pose_bound,
