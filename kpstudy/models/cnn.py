@@ -11,7 +11,7 @@ upsampler. Every bound method maps a zonotope through it exactly: the heatmaps' 
 as tight as the encoder's. :class:`HeatmapCNNPatchDecoder`, the verification-friendly
 model kpstudy ships, also makes every transposed convolution's kernel its stride, so each
 encoder position drives its own 4×4 patch of the heatmaps and the zonotope's error
-symbols cost the decoder about a tenth of the multiply-adds.
+symbols cost the decoder a sixth or less of the multiply-adds.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class HeatmapCNNPatchDecoder(HeatmapCNNAffineDecoder):
 
     The decoder maps each encoder position's 128 features to its own 4×4 patch of the
     heatmaps (one affine map per position, shared), so an error symbol's window does not
-    grow through it and a zonotope costs about a tenth of :class:`HeatmapCNNAffineDecoder`'s
-    multiply-adds there; ~3.6e5 parameters for K = 23."""
+    grow through it and a zonotope costs a sixth or less of
+    :class:`HeatmapCNNAffineDecoder`'s multiply-adds there; ~3.6e5 parameters for K = 23."""
 
     decoder_kernels = (2, 1)
