@@ -52,16 +52,18 @@ class HeatmapCNN(HeatmapBackbone):
             layers += [nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out)]
             layers.append(nn.ReLU())
         for c_in, c_out, stride in _DECODER:
-            kernel = self.decoder_kernels[0] if stride == 2 else self.decoder_kernels[1]
-            pad = (kernel - stride) // 2
-            layers.append(nn.ConvTranspose2d(c_in, c_out, kernel, stride, pad, bias=False))
-            layers.append(nn.BatchNorm2d(c_out))
+            layers += [self._upsample(c_in, c_out, stride, bias=False), nn.BatchNorm2d(c_out)]
             if self.decoder_relu:
                 layers.append(nn.ReLU())
-        kernel = self.decoder_kernels[1]
-        layers.append(nn.ConvTranspose2d(_DECODER[-1][1], keypoints, kernel, 1, (kernel - 1) // 2))
+        layers.append(self._upsample(_DECODER[-1][1], keypoints, 1, bias=True))
         super().__init__(*layers)
         self.keypoints = keypoints
+
+    @classmethod
+    def _upsample(cls, c_in: int, c_out: int, stride: int, bias: bool) -> nn.ConvTranspose2d:
+        """A decoder layer: ``(B, c_in, h, w) → (B, c_out, stride·h, stride·w)``."""
+        kernel = cls.decoder_kernels[0] if stride == 2 else cls.decoder_kernels[1]
+        return nn.ConvTranspose2d(c_in, c_out, kernel, stride, (kernel - stride) // 2, bias=bias)
 
 
 class HeatmapCNNAffineDecoder(HeatmapCNN):
