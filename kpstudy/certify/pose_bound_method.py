@@ -598,13 +598,17 @@ def _search_regions(backbone, hull, centers, stride: int, search: dict, focus=No
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
     keywords, ``focus`` and ``resume``; the :class:`Regions` and each keypoint's pixels
-    ``(n_k, 2)``."""
+    ``(n_k, 2)``. At stride 1 the proxy's cells are the heatmap pixels in the backbone's
+    own order, so the backbone is searched itself: its output keeps the zonotope's error
+    symbols in blocks that the search reads where it needs them."""
     hm = backbone.heatmap_size
     pooling = _pooling(centers, stride, hm)
-    proxy = build_proxy(backbone, pooling, centers).eval()
-    regions = reachable_argmax(
-        proxy, hull, proxy.spec.group_sizes, focus=focus, resume=resume, **search
-    )
+    if stride == 1:
+        model, sizes = backbone, [hm * hm] * len(centers)
+    else:
+        model = build_proxy(backbone, pooling, centers).eval()
+        sizes = model.spec.group_sizes
+    regions = reachable_argmax(model, hull, sizes, focus=focus, resume=resume, **search)
     return regions, region_pixels(regions, pooling, hm)
 
 

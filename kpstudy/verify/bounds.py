@@ -70,10 +70,37 @@ class BoundsTimeout(Exception):
 
 
 class Region:
-    """``B`` input regions: coefficient stacks ``mid``, ``rad`` ``(B, q, *S)`` and a domain."""
+    """``B`` regions of a value: coefficient stacks ``mid``, ``rad`` ``(B, q, *S)`` and a
+    domain; a zonotope's error symbols either as rows of ``mid`` past ``q`` or, from
+    :func:`propagate` with ``dense=False``, as spatial ``blocks``
+    (:mod:`kpstudy.verify.symbols`, ``rows`` the dense stack's rows they number into)."""
 
-    def __init__(self, mid: torch.Tensor, rad: torch.Tensor, domain: str) -> None:
+    def __init__(
+        self,
+        mid: torch.Tensor,
+        rad: torch.Tensor,
+        domain: str,
+        blocks: list | None = None,
+        rows: int | None = None,
+    ) -> None:
         self.mid, self.rad, self.domain = mid, rad, domain
+        self.blocks, self.rows = blocks, rows
+
+    def reach(self) -> torch.Tensor | float:
+        """``Σ_e |coefficient of symbol e|`` per entry ``(B, *S)`` (0 without symbols)."""
+        if self.blocks is not None:
+            return symbols.reach(self.blocks, self.mid[:, 0])
+        q = self.rad.shape[1]
+        return symbols.l1_rows(self.mid[:, q:]) if self.mid.shape[1] > q else 0.0
+
+    def symbols_at(self, index: torch.Tensor) -> torch.Tensor:
+        """The error symbols' coefficients ``(B, E, n)`` on the flat entries ``index (n,)``."""
+        q = self.rad.shape[1]
+        if self.blocks is not None:
+            if not self.blocks:
+                return self.mid.new_zeros(self.mid.shape[0], self.rows - q, len(index))
+            return symbols.gather(self.blocks, self.rows - q, q, self.mid.shape[2:], index)
+        return self.mid[:, q:].flatten(2).index_select(-1, index)
 
     @classmethod
     def affine(cls, coeff: torch.Tensor, domain: str) -> Region:
@@ -90,7 +117,7 @@ class Region:
         past the ``q`` of ``rad`` are error-symbol coefficients (a zonotope), each symbol
         in [−1, 1]."""
         q = self.rad.shape[1]
-        spread = symbols.l1_rows(self.mid[:, q:]) if self.mid.shape[1] > q else 0.0
+        spread = self.reach()
         low = domain_min(self.mid[:, :q] - self.rad, self.domain) - spread
         high = -domain_min(-(self.mid[:, :q] + self.rad), self.domain) + spread
         return low, high
@@ -111,6 +138,7 @@ def propagate(
     zonotope: bool = False,
     max_generators: int | None = None,
     deadline: float | None = None,
+    dense: bool = True,
 ) -> tuple[Region, dict]:
     """Forward coefficient bounds of the output for ``B`` regions, and what CROWN needs
     (node → what its rule saved, for :func:`backward`).
@@ -122,8 +150,11 @@ def propagate(
     affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
     most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
     ``(B, q, *S)``. Inside, the symbols travel in spatial blocks where they can
-    (:mod:`kpstudy.verify.symbols`); the output and what ``visit(i, mid, rad)`` (if
-    given) sees of every node are dense stacks. Past ``deadline``
+    (:mod:`kpstudy.verify.symbols`); what ``visit(i, mid, rad)`` (if given) sees of
+    every node is a dense stack, and so is the output unless ``dense`` is False: then an
+    output that holds its symbols in blocks keeps them (:attr:`Region.blocks`), for a
+    caller that reads a few entries' symbols (:meth:`Region.symbols_at`) of an output
+    whose dense stack (symbols × outputs) would dwarf the pass itself. Past ``deadline``
     (``time.perf_counter()`` seconds) it raises :class:`BoundsTimeout` between two layers:
     one node of a large zonotope can take minutes.
     """
@@ -146,7 +177,10 @@ def propagate(
             remaining[j] -= 1
             if remaining[j] == 0 and j > 0:
                 values[j] = None
-    return Region(p.dense(values[-1]), values[-1][1], region.domain), p.saved
+    mid, rad, blocks = values[-1]
+    if blocks is not None and not dense:
+        return Region(mid, rad, region.domain, blocks, p.made), p.saved
+    return Region(p.dense(values[-1]), rad, region.domain), p.saved
 
 
 def symbol_budget(graph: Graph, q: int) -> int:

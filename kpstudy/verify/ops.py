@@ -81,6 +81,31 @@ class ConvTranspose(_Weighted):
         )
 
 
+class PatchConvTranspose(ConvTranspose):
+    """A transposed convolution whose kernel is its stride ``s`` (no padding), with a bias
+    ``(C_out, s, s)`` that repeats over the output's ``s × s`` patches: what a chain of
+    such layers composes into (:func:`kpstudy.verify.graph.trace` fuses them), each input
+    position mapped to its own output patch.
+
+    Parameters
+    ----------
+    weight : Tensor, shape (C_in, C_out, s, s)
+    bias : Tensor, shape (C_out, s, s)
+    """
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor):
+        c_in, c_out, s, _ = weight.shape
+        m = nn.ConvTranspose2d(c_in, c_out, s, s, bias=False).to(weight.dtype)
+        with torch.no_grad():
+            m.weight.copy_(weight)
+        super().__init__(m.eval().requires_grad_(False))
+        self.bias = bias
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        return self.m(x) + self.bias.to(x.dtype).repeat(1, h, w)
+
+
 class Dense(_Weighted):
     def _map(self, x, w):
         return F.linear(x, w)

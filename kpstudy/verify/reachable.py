@@ -368,32 +368,36 @@ class _Reach:
         if self.method == "ibp":
             region = region.to_interval()
         zonotope = self.method == "zonotope"
-        out, _ = propagate(self.graph, region, zonotope=zonotope, deadline=self.deadline)
-        q = out.rad.shape[1]  # rows of the affine part in θ; the rest are error symbols
-        mid, rad = out.mid.flatten(2), out.rad.flatten(2)
-        low = self._padded(mid[:, :q] - rad, float("-inf"))  # a missing entry never beats
-        up = self._padded(mid[:, :q] + rad, 0.0)
-        symbols = self._padded(mid[:, q:], 0.0)  # (B, E, G, S)
-        spread = l1_rows(symbols)  # (B, G, S)
-        lower = domain_min(low, out.domain) - spread
+        out, _ = propagate(
+            self.graph, region, zonotope=zonotope, deadline=self.deadline, dense=False
+        )
+        q = out.rad.shape[1]  # rows of the affine part in θ; the symbols follow
+        mid, rad = out.mid[:, :q].flatten(2), out.rad.flatten(2)
+        low = self._padded(mid - rad, float("-inf"))  # a missing entry never beats
+        up = self._padded(mid + rad, 0.0)
+        reach = out.reach()
+        spread = self._padded(reach.flatten(1), 0.0) if torch.is_tensor(reach) else reach
+        lower = domain_min(low, out.domain) - spread  # (B, G, S)
         upper = -domain_min(-up, out.domain) + spread
         top = lower.topk(self.k, dim=-1).indices  # (B, G, k)
         # Intervals first (ℓ_c ≥ lower_c > upper_i), then, for what they leave, the
         # linear bounds: min over θ of ℓ_c(θ) − u_i(θ), less the symbols' share.
         beaten = (lower.gather(2, top).amax(-1, keepdim=True) > upper + self.tol_abs) & self.valid
-        # One group at a time, over the indices the intervals leave: the symbol stack is
-        # read along its contiguous index axis (gathering rows of it per index is ~10×
-        # slower on the CPU).
+        # One group at a time, over the indices the intervals leave and the candidates:
+        # their symbols alone are read (a dense stack of every output's symbols can be
+        # ten times the pass that made it).
         for g in (~beaten & self.valid).any(0).any(-1).nonzero().flatten().tolist():
             left = ((~beaten[:, g]) & self.valid[g]).any(0).nonzero().flatten()  # (L,)
+            tops, slot = top[:, g].unique(return_inverse=True)  # (U,), (B, k)
+            coeff = out.symbols_at(self.flat[g, torch.cat([left, tops])])  # (B, E, L + U)
+            symbols_g, picks = coeff[..., : len(left)], coeff[..., len(left) :]
             up_g = up[:, :, g, left]  # (B, q, L)
-            symbols_g = symbols[:, :, g].index_select(-1, left)  # (B, E, L)
             for c in range(self.k):
                 at = top[:, g, c].view(-1, 1, 1)  # (B, 1, 1)
                 margin = domain_min(
                     low[:, :, g].gather(2, at.expand(-1, low.shape[1], 1)) - up_g, out.domain
                 )
-                pick = symbols[:, :, g].gather(2, at.expand(-1, symbols.shape[1], 1))
+                pick = picks.gather(2, slot[:, c].view(-1, 1, 1).expand(-1, picks.shape[1], 1))
                 share = l1_rows(symbols_g - pick)  # (B, L)
                 beaten[:, g, left] |= margin - share > self.tol_abs
         return ~beaten & self.valid

@@ -110,6 +110,37 @@ def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
     )
 
 
+def gather(blocks: list[Block], rows: int, start: int, shape, index: torch.Tensor):
+    """The symbols' coefficients ``(B, rows, n)`` on the flat entries ``index (n,)`` of a
+    value of ``shape`` ``(C, H, W)``, symbol ``e`` in row ``e − start`` (the dense stack's
+    rows past its ``start`` affine ones, without forming it).
+
+    Parameters
+    ----------
+    blocks : list of Block
+        Non-empty.
+    rows : int
+        Symbols in all (the dense stack's rows less ``start``).
+    start : int
+        Number of the first symbol.
+    shape : (C, H, W)
+    index : LongTensor, shape (n,)
+    """
+    C, H, W = shape
+    c, y, x = index // (H * W), index // W % H, index % W
+    first = blocks[0].coeff
+    out = first.new_zeros(first.shape[0], rows, len(index))
+    for b in blocks:
+        h, w = b.coeff.shape[-2:]
+        inside = ((y >= b.y) & (y < b.y + h) & (x >= b.x) & (x < b.x + w)).nonzero().flatten()
+        if len(inside) == 0:
+            continue
+        local = (c[inside] * h + y[inside] - b.y) * w + x[inside] - b.x
+        r0 = b.start - start
+        out[:, r0 : r0 + b.rows, inside] = b.coeff.flatten(2)[:, :, local]
+    return out
+
+
 def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row."""
     parts = [((slice(None), slice(0, mid.shape[1])), mid)]
