@@ -9,7 +9,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from torch import nn
 
 from kpstudy.verify import Box, ConvexHull, Parallelotope, output_bounds
-from tests.verify_nets import LocalNet, MixedNet, PoolProxy, hull_vertices, mlp
+from tests.verify_nets import LocalNet, MixedNet, PatchNet, PoolProxy, hull_vertices, mlp
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 
@@ -369,6 +369,74 @@ def test_batch_norm_is_folded_into_the_convolution_that_feeds_it():
     assert not any(type(n.op).__name__ == "BatchNorm" for n in graph.nodes)
     with torch.no_grad():
         torch.testing.assert_close(graph.forward(x), net(x), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_patch_decoder_is_fused_into_one_exact_map_no_looser(seed, monkeypatch):
+    """Transposed convolutions whose kernels equal their strides (batch norms between)
+    trace to one PatchConvTranspose: the same map in float64, and zonotope bounds that
+    contain 2000 samples and are nowhere wider than the unfused layers' (whose radius
+    goes through each layer's |W|)."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify import graph as G
+    from kpstudy.verify.ops import PatchConvTranspose
+
+    net = PatchNet(seed).double()
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5, dtype=torch.float64))
+    graph = G.trace(net, hull.vertices[:1])
+    assert isinstance(graph.nodes[-1].op, PatchConvTranspose)
+    assert sum(isinstance(n.op, G.ops.ConvTranspose) for n in graph.nodes) == 1
+    with torch.no_grad():
+        x = _sample_images(hull, seed)
+        y = net(x)
+        torch.testing.assert_close(graph.forward(x), y, rtol=1e-12, atol=1e-12)
+        region = B.node_region(hull, hull.root(), graph.dtype)
+        # A budget of a few symbols: the rest go to the radius, which the fused map keeps tight.
+        lo, hi = B.propagate(graph, region, zonotope=True, max_generators=4)[0].bounds()
+        monkeypatch.setattr(G, "_fuse_patch_chains", lambda nodes: nodes)
+        apart = G.trace(net, hull.vertices[:1])
+        assert sum(isinstance(n.op, G.ops.ConvTranspose) for n in apart.nodes) == 3
+        lo3, hi3 = B.propagate(apart, region, zonotope=True, max_generators=4)[0].bounds()
+    assert (y >= lo - 1e-9).all() and (y <= hi + 1e-9).all()
+    assert (hi - lo <= hi3 - lo3 + 1e-9).all() and ((hi - lo) < (hi3 - lo3) - 1e-6).any()
+
+
+def test_a_fusion_that_would_cost_more_is_not_made():
+    from kpstudy.verify.graph import trace
+    from kpstudy.verify.ops import PatchConvTranspose
+
+    net = PatchNet(0, bottleneck=True).double()
+    x = hull_vertices(0, 2, (2, 8, 8), dtype=torch.float64)
+    graph = trace(net, x[:1])
+    kinds = [type(n.op).__name__ for n in graph.nodes]
+    assert kinds.count("ConvTranspose") + kinds.count("PatchConvTranspose") == 2, kinds
+    with torch.no_grad():
+        torch.testing.assert_close(graph.forward(x), net(x), rtol=1e-12, atol=1e-12)
+    assert any(isinstance(n.op, PatchConvTranspose) for n in graph.nodes)  # the cheap pair
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed):
+    """propagate(dense=False): the output's symbol reach and its symbols on chosen entries
+    (Region.reach, Region.symbols_at) are the dense stack's."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+
+    net = PatchNet(seed).double()
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5, dtype=torch.float64))
+    graph = trace(net, hull.vertices[:1])
+    region = B.node_region(hull, hull.split(hull.split(hull.root())), graph.dtype)
+    with torch.no_grad():
+        kept, _ = B.propagate(graph, region, zonotope=True, dense=False)
+        dense, _ = B.propagate(graph, region, zonotope=True)
+    assert kept.blocks and kept.mid.shape[1] == kept.rad.shape[1]
+    q = kept.rad.shape[1]
+    torch.testing.assert_close(kept.reach(), dense.reach())
+    index = torch.randperm(3 * 16 * 16, generator=torch.Generator().manual_seed(seed))[:50]
+    torch.testing.assert_close(kept.symbols_at(index), dense.mid[:, q:].flatten(2)[..., index])
+    torch.testing.assert_close(kept.symbols_at(index), dense.symbols_at(index))
+    for a, b in zip(kept.bounds(), dense.bounds()):
+        torch.testing.assert_close(a, b)
 
 
 def test_unsupported_layer_is_named():

@@ -5,7 +5,7 @@ import torch
 from torch import nn
 
 from kpstudy.verify import ConvexHull, Parallelotope, reachable_argmax
-from tests.verify_nets import MixedNet, PoolProxy, hull_vertices
+from tests.verify_nets import MixedNet, PatchNet, PoolProxy, hull_vertices
 
 #: A node budget (a few seconds of search here; the searches that end take at most ~260
 #: nodes), so the sets do not depend on the machine's speed; the timeout (s) only caps a
@@ -61,6 +61,25 @@ def test_pool_proxy_groups_of_unequal_size(seed, method):
     for g, size in enumerate(model.group_sizes):
         possible = set(regions.possible[g].tolist())
         assert sampled[g] <= possible and max(possible) < size
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_search_reading_symbols_from_blocks_finds_what_a_dense_output_gives(seed):
+    """A heatmap-shaped output keeps its error symbols in blocks, which the search reads
+    where it needs them; a flattened output is dense. Same possible sets and witnesses,
+    and they contain every sampled argmax."""
+    net = PatchNet(seed).double()
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5, dtype=torch.float64))
+    sizes = [256] * 3  # one group per heatmap channel
+    kw = dict(method="zonotope", max_nodes=24, timeout=CAP)
+    blocks = reachable_argmax(net, hull, sizes, **kw)
+    dense = reachable_argmax(nn.Sequential(net, nn.Flatten()), hull, sizes, **kw)
+    sampled = sampled_argmax(net, hull, sizes)
+    for g in range(3):
+        assert blocks.possible[g].tolist() == dense.possible[g].tolist()
+        assert sorted(blocks.witnesses[g]) == sorted(dense.witnesses[g])
+        assert sampled[g] <= set(blocks.possible[g].tolist())
+    assert sum(len(p) for p in blocks.possible) < 3 * 256  # the bounds decided something
 
 
 def test_parallelotope_and_ibp_are_sound_too():

@@ -91,6 +91,38 @@ class PoolProxy(nn.Module):
         return torch.cat([p(h[:, k : k + 1]).flatten(1) for k, p in enumerate(self.pools)], 1)
 
 
+class PatchNet(nn.Module):
+    """A tiny heatmap network with a patch decoder: two convolutions (one strided) with
+    ReLUs, then transposed convolutions whose kernels equal their strides with batch
+    norms between them (an affine decoder). Input ``(B, 2, 8, 8)`` → ``(B, 3, 16, 16)``.
+    ``bottleneck`` puts a one-channel layer in the decoder, which fusing would make
+    costlier."""
+
+    def __init__(self, seed: int, bottleneck: bool = False):
+        super().__init__()
+        torch.manual_seed(seed)
+        mid = 1 if bottleneck else 4
+        self.encoder = nn.Sequential(
+            nn.Conv2d(2, 6, 3, stride=2, padding=1), nn.BatchNorm2d(6), nn.ReLU(),
+            nn.Conv2d(6, 6, 3, padding=1), nn.ReLU(),
+        )  # fmt: skip
+        self.decoder = nn.Sequential(
+            nn.ConvTranspose2d(6, 6, 2, stride=2, bias=False), nn.BatchNorm2d(6),
+            nn.ConvTranspose2d(6, mid, 1, bias=False), nn.BatchNorm2d(mid),
+            nn.ConvTranspose2d(mid, 3, 2, stride=2),
+        )  # fmt: skip
+        with torch.no_grad():
+            for m in self.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.running_mean.uniform_(-0.5, 0.5)
+                    m.running_var.uniform_(0.5, 2.0)
+                    m.bias.uniform_(-0.3, 0.3)
+        self.eval()
+
+    def forward(self, x):
+        return self.decoder(self.encoder(x))
+
+
 def mlp(seed: int, sizes=(6, 5, 5, 3)) -> nn.Sequential:
     """A ReLU MLP on ``(B, sizes[0])``, float64."""
     torch.manual_seed(seed)

@@ -194,19 +194,20 @@ class Profile:
 
 #: The quick profile's pose-bound method in T-local per model: the paper's CNN with
 #: forward bounds on the root (its zonotope proves 3 of the 4 m = 2 hulls, but in 26-392 s
-#: each: docs/findings.md), the verification-friendly CNN with the zonotope on the
-#: 16 nodes of the hull split four times (about half the hull per direction at m = 4, the
-#: scale its bound term was trained on), then up to 48 nodes aimed at the cells that keep
-#: an `unknown` open (seed 481, m = 2 at α = 1.5 needs 12 under the enumeration rule).
+#: each, and leaves seed 481's m = 2 hull open after 16 nodes in 84 s: docs/findings.md),
+#: the verification-friendly CNN with the zonotope on up to 128 nodes from the hull split
+#: four times (about half the hull per direction at m = 4, the scale its bound term was
+#: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (seed
+#: 481's m = 3 and m = 4 hulls hold after 90 and 114 nodes, 24 s and 21 s).
 #: Node budgets give the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
     "cnn_patch": dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=600.0,
-        pose_bound_nodes=16,
+        pose_bound_nodes=128,
         pose_bound_start_depth=4,
-        pose_bound_refine_nodes=48,
+        pose_bound_refine_nodes=64,
     ),
 }
 #: The same in T-global: the zonotope for both, up to 3 nodes per hull (every hull the

@@ -272,18 +272,16 @@ def _fuse_patch_chains(nodes: list[Node]) -> list[Node]:
     for i, node in enumerate(nodes):
         inputs = tuple(where[j] for j in node.inputs)
         prev = out[-1] if out else None
+        first, second = (prev.op if prev else None), node.op
         if (
-            prev is not None
-            and inputs == (len(out) - 1,)
+            inputs == (len(out) - 1,)
             and uses[node.inputs[0]] == 1
-            and _patch_stride(prev.op)
-            and _patch_stride(node.op)
+            and _patch_stride(first)
+            and _patch_stride(second)
         ):
-            fused = _compose_patches(prev.op, node.op)
-            if _patch_cost(fused) <= _patch_cost(prev.op) + _patch_cost(node.op) * _patch_stride(
-                prev.op
-            ) ** 2:
-                out[-1] = Node(f"{prev.name}+{node.name}", fused, prev.inputs, ())
+            (c_in, _, s, _), (_, c_out, t, _) = first.m.weight.shape, second.m.weight.shape
+            if c_in * c_out * (s * t) ** 2 <= _patch_cost(first) + _patch_cost(second) * s * s:
+                out[-1] = Node(f"{prev.name}+{node.name}", _compose(first, second), prev.inputs, ())
                 where[i] = len(out) - 1
                 continue
         where[i] = len(out)
@@ -297,7 +295,7 @@ def _patch_cost(op) -> int:
     return c_in * c_out * kh * kw
 
 
-def _compose_patches(first, second) -> ops.PatchConvTranspose:
+def _compose(first, second) -> ops.PatchConvTranspose:
     """``second ∘ first`` of two patch-local transposed convolutions, as one: its weight is
     the chain's linear part on each one-hot input pixel, its patch bias the chain at zero."""
     c_in = first.m.weight.shape[0]
