@@ -2,9 +2,9 @@
 
 For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m`` and
 overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
-``bound_profile``), :func:`kpstudy.verify.reachable_argmax` on each backbone's stride-1
-proxy (the argmax head's own pixels, as :func:`kpstudy.certify.pose_bound` builds it)
-with ``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
+``bound_profile``), the search :func:`kpstudy.certify.pose_bound` makes at stride 1 (the
+argmax head's own pixels: :func:`kpstudy.verify.reachable_argmax` on the backbone) with
+``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
 ``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
 node, what stopped the search, whether the regions are complete (one witnessed pixel per
 possible one) and the mean possible pixels per keypoint.
@@ -20,12 +20,11 @@ import numpy as np
 
 from benchmarks.bound_profile import _checkpoint
 from benchmarks.common import emit, study_hulls
+from kpstudy.certify.pose_bound_method import search_regions
 from kpstudy.models.data import load_keypoint_set
-from kpstudy.models.pooling import keypoint_pooling
 from kpstudy.models.preprocess import scale_factors, to_input_pixels, to_model_input
-from kpstudy.models.proxy import build_proxy
 from kpstudy.models.training import load_checkpoint
-from kpstudy.verify import ConvexHull, reachable_argmax
+from kpstudy.verify import ConvexHull
 
 
 def main(argv=None):
@@ -53,19 +52,15 @@ def main(argv=None):
             uv = np.asarray(test.image_keypoints[index], dtype=np.float64)
             factors = scale_factors(tuple(test.image_size), hm)
             centers = np.clip(np.rint(to_input_pixels(uv, factors)), 0, hm - 1).astype(np.int64)
-            pooling = keypoint_pooling(centers, np.zeros_like(centers), (hm, hm))
-            proxy = build_proxy(net, pooling, centers).eval()
             hull = ConvexHull(to_model_input(hull_args["V"], size=net.input_size))
-            start = time.perf_counter()
-            regions = reachable_argmax(
-                proxy,
-                hull,
-                proxy.spec.group_sizes,
+            search = dict(
                 method=args.method,
                 timeout=args.timeout,
                 max_nodes=args.nodes,
                 start_depth=args.start_depth,
             )
+            start = time.perf_counter()
+            regions, _ = search_regions(net, hull, centers, 1, search)
             seconds = time.perf_counter() - start
             out["runs"].append(
                 {

@@ -167,7 +167,7 @@ def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: 
     pose = pb.HullPoseBound(
         backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, max_nodes=1, refine_nodes=6
     )
-    first, _ = pb._search_regions(backbone, hull, pose.centers, 1, pose.search)
+    first, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
     # Every unreached cell in focus: the second search may split wherever the first left one.
     focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
     merged, pixels = pose._refined(first, focus, 6)

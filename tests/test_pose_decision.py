@@ -134,7 +134,7 @@ def _with_regions(monkeypatch, pixels, witnesses=()):
         witnesses=list(witnesses), nodes=1, complete=True, stats={"stopped": None}
     )
     pixels = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pixels]
-    monkeypatch.setattr(pb, "_search_regions", lambda *args: (regions, pixels))
+    monkeypatch.setattr(pb, "search_regions", lambda *args: (regions, pixels))
 
 
 def _hull():
@@ -196,8 +196,8 @@ def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypat
     pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1))])
     _with_regions(monkeypatch, pixels)
     searches, enumerations = [], []
-    search, enumerate_ = pb._search_regions, pb._enumerate
-    monkeypatch.setattr(pb, "_search_regions", lambda *a: searches.append(1) or search(*a))
+    search, enumerate_ = pb.search_regions, pb._enumerate
+    monkeypatch.setattr(pb, "search_regions", lambda *a: searches.append(1) or search(*a))
     monkeypatch.setattr(pb, "_enumerate", lambda *a: enumerations.append(1) or enumerate_(*a))
     exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
     M = np.full((6, 46), 1.0)
@@ -564,7 +564,7 @@ def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, mon
         found = Regions([HM * HM] * len(centers), possible, witnesses, 0.0, nodes, stats)
         return found, pb.region_pixels(found, pooling, HM)
 
-    monkeypatch.setattr(pb, "_search_regions", search)
+    monkeypatch.setattr(pb, "search_regions", search)
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
     M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves it open
     args = (_Peaks(centers), _hull(), seed, R, t, M, eps)

@@ -81,6 +81,7 @@ __all__ = [
     "linearised_bound",
     "pose_bound",
     "region_pixels",
+    "search_regions",
     "single_moves",
     "targeted_witness",
 ]
@@ -383,7 +384,7 @@ class HullPoseBound:
         else:
             regions, pixels = self._shared(
                 "search",
-                lambda: _search_regions(
+                lambda: search_regions(
                     self.backbone, self.hull, self.centers, self.stride, self.search
                 ),
             )
@@ -502,7 +503,7 @@ class HullPoseBound:
         :class:`Regions` (their ``nodes`` and ``time`` those of both searches) and their
         pixels."""
         search = dict(self.search, max_nodes=budget)
-        second, pixels = _search_regions(
+        second, pixels = search_regions(
             self.backbone, self.hull, self.centers, self.stride, search, focus, regions
         )
         second.nodes += regions.nodes
@@ -594,7 +595,7 @@ def _pooling(centers, stride: int, heatmap_size: int):
     return keypoint_pooling(centers, half, (heatmap_size, heatmap_size))
 
 
-def _search_regions(backbone, hull, centers, stride: int, search: dict, focus=None, resume=None):
+def search_regions(backbone, hull, centers, stride: int, search: dict, focus=None, resume=None):
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
     keywords, ``focus`` and ``resume``; the :class:`Regions` and each keypoint's pixels
