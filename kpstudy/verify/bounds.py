@@ -97,9 +97,7 @@ class Region:
         """The error symbols' coefficients ``(B, E, n)`` on the flat entries ``index (n,)``."""
         q = self.rad.shape[1]
         if self.blocks is not None:
-            if not self.blocks:
-                return self.mid.new_zeros(self.mid.shape[0], self.rows - q, len(index))
-            return symbols.gather(self.blocks, self.rows - q, q, self.mid.shape[2:], index)
+            return symbols.gather(self.blocks, self.rows - q, q, self.mid, index)
         return self.mid[:, q:].flatten(2).index_select(-1, index)
 
     @classmethod

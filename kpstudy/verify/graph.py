@@ -217,10 +217,10 @@ def _operator(n: fx.Node, modules: dict, constants: dict) -> tuple[ops.Op, list[
     raise ValueError(f"model: unsupported operation {n.op} {n.target} {where}")
 
 
-def _fold_batch_norms(nodes: list[Node]) -> list[Node]:
-    """Fold each eval batch norm into the (transposed) convolution that alone feeds it:
-    one affine node instead of two, the same map up to float rounding (every bound method
-    then makes one pass fewer per convolution)."""
+def _merge_pairs(nodes: list[Node], merge) -> list[Node]:
+    """``nodes`` with each node that alone reads the node before it (which nothing else
+    reads) replaced, together with that node, by ``merge(before.op, node.op)`` wherever
+    that gives an operator (one node named ``before+node``; None keeps both)."""
     uses = [0] * len(nodes)
     for node in nodes:
         for j in node.inputs:
@@ -229,18 +229,31 @@ def _fold_batch_norms(nodes: list[Node]) -> list[Node]:
     where: dict[int, int] = {}  # old index → new index
     for i, node in enumerate(nodes):
         inputs = tuple(where[j] for j in node.inputs)
-        if isinstance(node.op, ops.BatchNorm) and out and inputs == (len(out) - 1,):
+        if out and inputs == (len(out) - 1,) and uses[node.inputs[0]] == 1:
             prev = out[-1]
-            conv = isinstance(prev.op, (ops.Conv, ops.ConvTranspose)) and not prev.op.m.training
-            if conv and uses[node.inputs[0]] == 1:
-                transpose = isinstance(prev.op, ops.ConvTranspose)
-                fused = fuse_conv_bn_eval(prev.op.m, node.op.m, transpose=transpose)
-                out[-1] = Node(f"{prev.name}+{node.name}", type(prev.op)(fused), prev.inputs, ())
+            op = merge(prev.op, node.op)
+            if op is not None:
+                out[-1] = Node(f"{prev.name}+{node.name}", op, prev.inputs, ())
                 where[i] = len(out) - 1
                 continue
         where[i] = len(out)
         out.append(Node(node.name, node.op, inputs, node.shape))
     return out
+
+
+def _fold_batch_norms(nodes: list[Node]) -> list[Node]:
+    """Fold each eval batch norm into the (transposed) convolution that alone feeds it:
+    one affine node instead of two, the same map up to float rounding (every bound method
+    then makes one pass fewer per convolution)."""
+
+    def fold(first, second):
+        conv = isinstance(first, (ops.Conv, ops.ConvTranspose)) and not first.m.training
+        if not (conv and isinstance(second, ops.BatchNorm)):
+            return None
+        transpose = isinstance(first, ops.ConvTranspose)
+        return type(first)(fuse_conv_bn_eval(first.m, second.m, transpose=transpose))
+
+    return _merge_pairs(nodes, fold)
 
 
 def _patch_stride(op) -> int | None:
@@ -263,30 +276,16 @@ def _fuse_patch_chains(nodes: list[Node]) -> list[Node]:
     affine map, computed in float64. A zonotope pays a layer's multiply-adds once per error
     symbol, so the verification-friendly CNN's five decoder layers (128 → 23 channels,
     4×4 patches) cost a third as one."""
-    uses = [0] * len(nodes)
-    for node in nodes:
-        for j in node.inputs:
-            uses[j] += 1
-    out: list[Node] = []
-    where: dict[int, int] = {}
-    for i, node in enumerate(nodes):
-        inputs = tuple(where[j] for j in node.inputs)
-        prev = out[-1] if out else None
-        first, second = (prev.op if prev else None), node.op
-        if (
-            inputs == (len(out) - 1,)
-            and uses[node.inputs[0]] == 1
-            and _patch_stride(first)
-            and _patch_stride(second)
-        ):
-            (c_in, _, s, _), (_, c_out, t, _) = first.m.weight.shape, second.m.weight.shape
-            if c_in * c_out * (s * t) ** 2 <= _patch_cost(first) + _patch_cost(second) * s * s:
-                out[-1] = Node(f"{prev.name}+{node.name}", _compose(first, second), prev.inputs, ())
-                where[i] = len(out) - 1
-                continue
-        where[i] = len(out)
-        out.append(Node(node.name, node.op, inputs, node.shape))
-    return out
+
+    def fuse(first, second):
+        if not (_patch_stride(first) and _patch_stride(second)):
+            return None
+        (c_in, _, s, _), (_, c_out, t, _) = first.m.weight.shape, second.m.weight.shape
+        if c_in * c_out * (s * t) ** 2 > _patch_cost(first) + _patch_cost(second) * s * s:
+            return None
+        return _compose(first, second)
+
+    return _merge_pairs(nodes, fuse)
 
 
 def _patch_cost(op) -> int:

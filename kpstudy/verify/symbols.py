@@ -110,26 +110,14 @@ def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
     )
 
 
-def gather(blocks: list[Block], rows: int, start: int, shape, index: torch.Tensor):
+def gather(blocks: list[Block], rows: int, start: int, like: torch.Tensor, index: torch.Tensor):
     """The symbols' coefficients ``(B, rows, n)`` on the flat entries ``index (n,)`` of a
-    value of ``shape`` ``(C, H, W)``, symbol ``e`` in row ``e − start`` (the dense stack's
-    rows past its ``start`` affine ones, without forming it).
-
-    Parameters
-    ----------
-    blocks : list of Block
-        Non-empty.
-    rows : int
-        Symbols in all (the dense stack's rows less ``start``).
-    start : int
-        Number of the first symbol.
-    shape : (C, H, W)
-    index : LongTensor, shape (n,)
-    """
-    C, H, W = shape
+    value held as ``like (B, q, C, H, W)`` and ``blocks``, symbol ``e`` in row
+    ``e − start`` (the dense stack's rows past its ``start`` affine ones, without forming
+    it); ``rows`` is the number of symbols in all."""
+    H, W = like.shape[-2:]
     c, y, x = index // (H * W), index // W % H, index % W
-    first = blocks[0].coeff
-    out = first.new_zeros(first.shape[0], rows, len(index))
+    out = like.new_zeros(like.shape[0], rows, len(index))
     for b in blocks:
         h, w = b.coeff.shape[-2:]
         inside = ((y >= b.y) & (y < b.y + h) & (x >= b.x) & (x < b.x + w)).nonzero().flatten()
