@@ -182,6 +182,29 @@ def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: 
         assert {tuple(p) for p in argmax[:, k].long().tolist()} <= kept
 
 
+def test_the_search_takes_its_witnesses_from_the_first_images_without_evaluating_them_again(
+    study,  # noqa: F811
+):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = _seed(data)
+    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
+    hull = ConvexHull(to_model_input(vertices, size=backbone.input_size))
+    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
+    pose = pb.HullPoseBound(backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, max_nodes=2)
+    alone, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
+    evaluated = []
+    hook = backbone.register_forward_hook(lambda m, args, out: evaluated.append(len(args[0])))
+    record = pose.decide(np.full(6, 1e6))  # Ξ holds every pose: no early witness
+    hook.remove()
+    shared, _ = pose._made["search"][0]
+    assert record["pb_nodes"] == alone.nodes == shared.nodes
+    assert [p.tolist() for p in shared.possible] == [p.tolist() for p in alone.possible]
+    assert [sorted(w) for w in shared.witnesses] == [sorted(w) for w in alone.witnesses]
+    # The 64 random images once (the search used to draw and evaluate the same 64 again).
+    assert 64 <= sum(evaluated) < 2 * 64
+
+
 def test_at_stride_1_the_proxy_is_the_backbones_own_output():
     """The stride-1 search bounds the backbone itself (its error symbols stay in blocks):
     sound only because the proxy's one-pixel cells are the heatmaps in the backbone's

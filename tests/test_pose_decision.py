@@ -134,7 +134,7 @@ def _with_regions(monkeypatch, pixels, witnesses=()):
         witnesses=list(witnesses), nodes=1, complete=True, stats={"stopped": None}
     )
     pixels = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in pixels]
-    monkeypatch.setattr(pb, "search_regions", lambda *args: (regions, pixels))
+    monkeypatch.setattr(pb, "search_regions", lambda *args, **kwargs: (regions, pixels))
 
 
 def _hull():
@@ -197,7 +197,7 @@ def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypat
     _with_regions(monkeypatch, pixels)
     searches, enumerations = [], []
     search, enumerate_ = pb.search_regions, pb._enumerate
-    monkeypatch.setattr(pb, "search_regions", lambda *a: searches.append(1) or search(*a))
+    monkeypatch.setattr(pb, "search_regions", lambda *a, **k: searches.append(1) or search(*a, **k))
     monkeypatch.setattr(pb, "_enumerate", lambda *a: enumerations.append(1) or enumerate_(*a))
     exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
     M = np.full((6, 46), 1.0)
@@ -552,7 +552,7 @@ def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, mon
     seed_lam = torch.zeros(1, dtype=torch.float64)
     foci = []
 
-    def search(backbone, hull, centers_, stride, search, focus=None, resume=None):
+    def search(backbone, hull, centers_, stride, search, focus=None, resume=None, witnesses=None):
         """The first search leaves keypoint 0's far pixel possible; a focused one removes it."""
         foci.append(focus)
         possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]

@@ -220,6 +220,29 @@ def test_a_search_resumed_with_another_focus_is_sound(seed):
         reachable_argmax(model, hull, [2, 4], max_nodes=1, resume=first, **search)
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_a_callers_witnesses_stand_for_the_samples(seed):
+    """Witnesses a caller found (passed with ``samples=0``) give the search the samples'
+    reached sets, hence the same nodes and possible sets."""
+    model = MixedNet(seed)
+    hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5))
+    search = dict(method="zonotope", max_nodes=NODES, timeout=CAP)
+    alone = reachable_argmax(model, hull, [3, 3], samples=64, **search)
+    lam = hull.sample(64, 0)
+    with torch.no_grad():
+        best = model(hull.image(lam)).flatten(1).unflatten(1, (2, 3)).argmax(-1)  # (64, 2)
+    given = [{}, {}]
+    for point, indices in zip(lam, best.tolist()):
+        for g, i in enumerate(indices):
+            given[g].setdefault(i, point)
+    taken = reachable_argmax(model, hull, [3, 3], samples=0, witnesses=given, **search)
+    assert taken.nodes == alone.nodes
+    assert [p.tolist() for p in taken.possible] == [p.tolist() for p in alone.possible]
+    assert [sorted(w) for w in taken.witnesses] == [sorted(w) for w in alone.witnesses]
+    for g in range(2):
+        assert set(given[g]) <= set(taken.witnesses[g])
+
+
 def test_bad_input_is_named():
     model = MixedNet(0)
     hull = ConvexHull(hull_vertices(0, 2, (2, 8, 8)))
@@ -232,6 +255,9 @@ def test_bad_input_is_named():
         (dict(group_sizes=[6], start_depth=-1), "start_depth"),
         (dict(group_sizes=[6], start_depth=13), "start_depth"),
         (dict(group_sizes=[6], start_depth=True), "start_depth"),
+        (dict(group_sizes=[3, 3], witnesses=[{}]), "witnesses"),
+        (dict(group_sizes=[3, 3], witnesses=[{3: torch.zeros(2)}, {}]), "witnesses"),
+        (dict(group_sizes=[3, 3], witnesses=[{0: torch.zeros(3)}, {}]), "witnesses"),
     ]:
         with pytest.raises(ValueError, match=f"^{name}"):
             reachable_argmax(model, hull, **kwargs)

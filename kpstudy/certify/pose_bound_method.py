@@ -332,6 +332,7 @@ class HullPoseBound:
         self.centers = np.clip(centers, 0, hm - 1).astype(np.int64)
         self.pooling = _pooling(self.centers, self.stride, hm)
         self._errors: dict = {}  # λ digest → argmax pose errors (6,)
+        self._argmax: dict = {}  # λ digest → argmax pixels, flat heatmap indices (K,)
         self._made: dict = {}  # shared step → (value, seconds)
         self._model64 = None
 
@@ -376,18 +377,14 @@ class HullPoseBound:
         seed_inside = bool(inside_tolerance(self._argmax_errors(seed_lam)[0], eps).all())
         # Witnesses first: the seed, the hull's corners and random images. One whose argmax
         # pose leaves Ξ decides 'violated', and the search is skipped (its regions: all).
-        early = self._outside(eps, _first_points(self.hull, self.sample_seed))
+        first = _first_points(self.hull, self.sample_seed)
+        early = self._outside(eps, first)
         skipped = early is not None
         if skipped:
             hm = self.backbone.heatmap_size
             regions, pixels = _everywhere(hm), [_grid(hm)] * len(self.V)
         else:
-            regions, pixels = self._shared(
-                "search",
-                lambda: search_regions(
-                    self.backbone, self.hull, self.centers, self.stride, self.search
-                ),
-            )
+            regions, pixels = self._shared("search", lambda: self._search(first))
         verdict = self._judge(eps, kappa, regions, pixels, early)
         refined = 0  # second-search nodes; each round aims at what the last one left
         while verdict["status"] == "unknown" and refined < self.refine:
@@ -556,15 +553,39 @@ class HullPoseBound:
 
         return self._shared("seed argmax", make)
 
+    def _search(self, first) -> tuple:
+        """The region search. At stride 1 its witnesses start from the argmax pixels at
+        ``first`` (λ, made by :meth:`_argmax_errors`), the random images first and then
+        the corners, as the search would take them itself: no image is evaluated twice."""
+        if self.stride != 1:
+            return search_regions(
+                self.backbone, self.hull, self.centers, self.stride, self.search
+            )
+        order = [*first[1 + self.hull.n :], *first[: 1 + self.hull.n]]
+        witnesses = [{} for _ in self.V]
+        for lam in order:
+            for k, pixel in enumerate(self._argmax[digest(lam)]):
+                witnesses[k].setdefault(int(pixel), lam)
+        search = dict(self.search, samples=0)
+        return search_regions(
+            self.backbone, self.hull, self.centers, 1, search, witnesses=witnesses
+        )
+
     def _argmax_errors(self, lam) -> np.ndarray:
         """:func:`argmax_pose_errors` of ``hull.image(lam)`` for ``lam (P, n)``, each
-        point's made once."""
+        point's made once; its argmax pixels (flat heatmap indices ``(K,)``) are kept in
+        :attr:`_argmax`."""
         keys = [digest(row) for row in lam]
         missing = [i for i, k in enumerate(keys) if k not in self._errors]
         if missing:
             images = self.hull.image(lam[missing])
-            errors = argmax_pose_errors(self.backbone, images, self.seed, self.R, self.t)
-            self._errors.update(zip([keys[i] for i in missing], errors))
+            with torch.no_grad():
+                heatmaps = self.backbone(images)
+            flat = heatmaps.flatten(2).argmax(-1)  # (P, K), the first maximum
+            uv = argmax_keypoints(heatmaps).double().numpy()
+            errors = _pose_errors(self.seed, to_image_pixels(uv, self.factors), self.R, self.t)
+            for i, f, e in zip(missing, flat.numpy(), errors):
+                self._errors[keys[i]], self._argmax[keys[i]] = e, f
         return np.stack([self._errors[k] for k in keys])
 
     def _outside(self, eps, points) -> list | None:
@@ -595,10 +616,12 @@ def _pooling(centers, stride: int, heatmap_size: int):
     return keypoint_pooling(centers, half, (heatmap_size, heatmap_size))
 
 
-def search_regions(backbone, hull, centers, stride: int, search: dict, focus=None, resume=None):
+def search_regions(
+    backbone, hull, centers, stride: int, search: dict, focus=None, resume=None, witnesses=None
+):
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords, ``focus`` and ``resume``; the :class:`Regions` and each keypoint's pixels
+    keywords, ``focus``, ``resume`` and ``witnesses`` (per keypoint, ``{cell: λ}``); the :class:`Regions` and each keypoint's pixels
     ``(n_k, 2)``. At stride 1 the proxy's cells are the heatmap pixels in the backbone's
     own order, so the backbone is searched itself: its output keeps the zonotope's error
     symbols in blocks that the search reads where it needs them."""
@@ -609,7 +632,9 @@ def search_regions(backbone, hull, centers, stride: int, search: dict, focus=Non
     else:
         model = build_proxy(backbone, pooling, centers).eval()
         sizes = model.spec.group_sizes
-    regions = reachable_argmax(model, hull, sizes, focus=focus, resume=resume, **search)
+    regions = reachable_argmax(
+        model, hull, sizes, focus=focus, resume=resume, witnesses=witnesses, **search
+    )
     return regions, region_pixels(regions, pooling, hm)
 
 

@@ -125,6 +125,7 @@ def reachable_argmax(
     memory: int = 2**25,
     focus=None,
     resume: Regions | None = None,
+    witnesses=None,
 ) -> Regions:
     """Sound sets of the indices each output group's argmax can take over ``input_set``.
 
@@ -170,6 +171,11 @@ def reachable_argmax(
         :class:`Frontier` (with its witnesses) instead of the root, typically with another
         ``focus``: no node is bounded twice, and ``max_nodes`` counts the new ones only.
         ``start_depth``, ``samples`` and ``seed`` are then unused.
+    witnesses : sequence of dict, optional
+        Per group, ``{index: λ (n,)}``: points at which the caller has already evaluated
+        the concrete model and found that group's argmax at ``index`` (typically the
+        images it sampled itself, passed with ``samples=0`` so that none is evaluated
+        twice). They count as reached, before the search's own samples.
 
     Returns
     -------
@@ -228,7 +234,9 @@ def reachable_argmax(
     with torch.no_grad():
         if resume is not None:
             queue = search.resume(resume)
-        else:
+        if witnesses is not None:
+            search.take_witnesses(witnesses)
+        if resume is None:
             if samples:
                 search.witness(input_set.sample(samples, seed))
             root = input_set.root()
@@ -333,6 +341,22 @@ class _Reach:
             if open_.any():
                 queue.append((nodes[open_], state[open_], level))
         return queue
+
+    def take_witnesses(self, witnesses) -> None:
+        """Record a caller's ``{index: λ}`` per group as reached (checked for shape)."""
+        if len(witnesses) != self.G:
+            raise ValueError(
+                f"witnesses: expected {self.G} dicts (one per group), got {len(witnesses)}"
+            )
+        for g, found in enumerate(witnesses):
+            for i, lam in found.items():
+                if not 0 <= int(i) < self.sizes[g]:
+                    raise ValueError(f"witnesses: group {g}'s indices must lie in [0, {self.sizes[g]})")
+                if tuple(torch.as_tensor(lam).shape) != (self.set.n,):
+                    raise ValueError(f"witnesses: expected points λ of shape ({self.set.n},)")
+                if not self.reached[g, int(i)]:
+                    self.reached[g, int(i)] = True
+                    self.witnesses[g][int(i)] = torch.as_tensor(lam, dtype=torch.float64).clone()
 
     def witness(self, points: torch.Tensor) -> None:
         """Record the concrete argmax of every group at ``points (P, n)``."""
