@@ -439,6 +439,20 @@ def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed):
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.parametrize("shape", [(2, 40, 7), (1, 33, 65, 64), (3, 20, 8, 8, 65)])
+def test_l1_rows_sums_absolute_rows_whichever_way_it_goes(shape):
+    """Short rows take one reduction, long ones go a few at a time: the same sums, and
+    the same gradient."""
+    from kpstudy.verify.symbols import L1_DIRECT, l1_rows
+
+    x = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
+    assert (x[:1, :1].numel() <= L1_DIRECT) == (shape[2:] == (7,))
+    out = l1_rows(x)
+    torch.testing.assert_close(out, x.abs().sum(1), rtol=1e-12, atol=1e-12)
+    out.sum().backward()
+    torch.testing.assert_close(x.grad, x.detach().sign())
+
+
 def test_unsupported_layer_is_named():
     net = nn.Sequential(nn.Conv2d(1, 2, 3), nn.Sigmoid()).eval()
     with pytest.raises(ValueError, match="model: unsupported operation Sigmoid"):

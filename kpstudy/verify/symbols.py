@@ -64,9 +64,17 @@ def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
     return False
 
 
+#: Entries per row of :func:`l1_rows`' input up to which one reduction is fastest.
+L1_DIRECT = 4096
+
+
 def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
-    """``Σ_i |x[:, i]|`` for ``x (B, r, …)``, a few rows at a time (``vector_norm`` and
-    ``abs().sum(1)`` over a middle dimension are 4–14× slower on the CPU)."""
+    """``Σ_i |x[:, i]|`` for ``x (B, r, …)``. Rows of more than :data:`L1_DIRECT` entries
+    go a few at a time (``vector_norm`` and ``abs().sum(1)`` over a middle dimension are
+    then 2–14× slower on the CPU); shorter ones, such as a search's margin rows, in one
+    reduction (the loop's overhead would be 2–5× its work)."""
+    if x[:1, :1].numel() <= L1_DIRECT:
+        return x.abs().sum(1)
     parts = x.split(chunk, 1)  # one backward (a concatenation), not one per slice
     out = parts[0].abs().sum(1)
     for part in parts[1:]:
