@@ -157,16 +157,21 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ
 
 
-def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: F811
+def _block_hull_pose_bound(study, **search):
+    """The study's trained model, its first seed's overlapping m = 2 block hull and the
+    :class:`HullPoseBound` on it with ``search``'s settings."""
     data, checkpoint = study
     backbone, _ = load_checkpoint(checkpoint)
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
     hull = ConvexHull(to_model_input(vertices, size=backbone.input_size))
     R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
-    pose = pb.HullPoseBound(
-        backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, max_nodes=1, refine_nodes=6
-    )
+    pose = pb.HullPoseBound(backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, **search)
+    return backbone, hull, pose
+
+
+def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: F811
+    backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=1, refine_nodes=6)
     first, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
     # Every unreached cell in focus: the second search may split wherever the first left one.
     focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
@@ -185,13 +190,7 @@ def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: 
 def test_the_search_takes_its_witnesses_from_the_first_images_without_evaluating_them_again(
     study,  # noqa: F811
 ):
-    data, checkpoint = study
-    backbone, _ = load_checkpoint(checkpoint)
-    seed = _seed(data)
-    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
-    hull = ConvexHull(to_model_input(vertices, size=backbone.input_size))
-    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
-    pose = pb.HullPoseBound(backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, max_nodes=2)
+    backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=2)
     alone, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
     evaluated = []
     hook = backbone.register_forward_hook(lambda m, args, out: evaluated.append(len(args[0])))
