@@ -157,10 +157,10 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ
 
 
-def _block_hull_pose_bound(study, **search):
+def _block_hull_pose_bound(trained, **search):
     """The study's trained model, its first seed's overlapping m = 2 block hull and the
     :class:`HullPoseBound` on it with ``search``'s settings."""
-    data, checkpoint = study
+    data, checkpoint = trained
     backbone, _ = load_checkpoint(checkpoint)
     seed = _seed(data)
     vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)

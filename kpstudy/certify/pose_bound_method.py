@@ -558,9 +558,7 @@ class HullPoseBound:
         ``first`` (λ, made by :meth:`_argmax_errors`), the random images first and then
         the corners, as the search would take them itself: no image is evaluated twice."""
         if self.stride != 1:
-            return search_regions(
-                self.backbone, self.hull, self.centers, self.stride, self.search
-            )
+            return search_regions(self.backbone, self.hull, self.centers, self.stride, self.search)
         order = [*first[1 + self.hull.n :], *first[: 1 + self.hull.n]]
         witnesses = [{} for _ in self.V]
         for lam in order:
@@ -621,10 +619,11 @@ def search_regions(
 ):
     """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
     stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords, ``focus``, ``resume`` and ``witnesses`` (per keypoint, ``{cell: λ}``); the :class:`Regions` and each keypoint's pixels
-    ``(n_k, 2)``. At stride 1 the proxy's cells are the heatmap pixels in the backbone's
-    own order, so the backbone is searched itself: its output keeps the zonotope's error
-    symbols in blocks that the search reads where it needs them."""
+    keywords, ``focus``, ``resume`` and ``witnesses`` (per keypoint, ``{cell: λ}``); the
+    :class:`Regions` and each keypoint's pixels ``(n_k, 2)``. At stride 1 the proxy's
+    cells are the heatmap pixels in the backbone's own order, so the backbone is searched
+    itself: its output keeps the zonotope's error symbols in blocks that the search reads
+    where it needs them."""
     hm = backbone.heatmap_size
     pooling = _pooling(centers, stride, hm)
     if stride == 1:

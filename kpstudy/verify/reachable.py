@@ -208,6 +208,8 @@ def reachable_argmax(
     sizes = [int(s) for s in group_sizes]
     if not sizes or min(sizes) < 1:
         raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
+    if witnesses is not None:
+        check_witnesses(witnesses, sizes, input_set.n)
     graph = trace(model, example_input(input_set))
     if graph.output_size != sum(sizes):
         raise ValueError(
@@ -277,6 +279,21 @@ def reachable_argmax(
     )
 
 
+def check_witnesses(witnesses, sizes, n: int) -> None:
+    """Raise ``ValueError`` unless ``witnesses`` holds, per group of ``sizes``, a dict of
+    indices within the group to points ``λ (n,)``."""
+    if len(witnesses) != len(sizes):
+        raise ValueError(
+            f"witnesses: expected {len(sizes)} dicts (one per group), got {len(witnesses)}"
+        )
+    for g, found in enumerate(witnesses):
+        for i, lam in found.items():
+            if not 0 <= int(i) < sizes[g]:
+                raise ValueError(f"witnesses: group {g}'s indices must lie in [0, {sizes[g]})")
+            if tuple(torch.as_tensor(lam).shape) != (n,):
+                raise ValueError(f"witnesses: expected points λ of shape ({n},)")
+
+
 def check_search(method, timeout, max_nodes, start_depth, batch=None) -> None:
     """Raise ``ValueError`` naming the first of :func:`reachable_argmax`'s search
     arguments that is not valid (before any work)."""
@@ -343,17 +360,9 @@ class _Reach:
         return queue
 
     def take_witnesses(self, witnesses) -> None:
-        """Record a caller's ``{index: λ}`` per group as reached (checked for shape)."""
-        if len(witnesses) != self.G:
-            raise ValueError(
-                f"witnesses: expected {self.G} dicts (one per group), got {len(witnesses)}"
-            )
+        """Record a caller's ``{index: λ}`` per group (:func:`check_witnesses`) as reached."""
         for g, found in enumerate(witnesses):
             for i, lam in found.items():
-                if not 0 <= int(i) < self.sizes[g]:
-                    raise ValueError(f"witnesses: group {g}'s indices must lie in [0, {self.sizes[g]})")
-                if tuple(torch.as_tensor(lam).shape) != (self.set.n,):
-                    raise ValueError(f"witnesses: expected points λ of shape ({self.set.n},)")
                 if not self.reached[g, int(i)]:
                     self.reached[g, int(i)] = True
                     self.witnesses[g][int(i)] = torch.as_tensor(lam, dtype=torch.float64).clone()
