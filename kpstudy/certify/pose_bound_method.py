@@ -577,12 +577,8 @@ class HullPoseBound:
         missing = [i for i, k in enumerate(keys) if k not in self._errors]
         if missing:
             images = self.hull.image(lam[missing])
-            with torch.no_grad():
-                heatmaps = self.backbone(images)
-            flat = heatmaps.flatten(2).argmax(-1)  # (P, K), the first maximum
-            uv = argmax_keypoints(heatmaps).double().numpy()
-            errors = _pose_errors(self.seed, to_image_pixels(uv, self.factors), self.R, self.t)
-            for i, f, e in zip(missing, flat.numpy(), errors):
+            flat, errors = _argmax_poses(self.backbone, images, self.seed, self.R, self.t)
+            for i, f, e in zip(missing, flat, errors):
                 self._errors[keys[i]], self._argmax[keys[i]] = e, f
         return np.stack([self._errors[k] for k in keys])
 
@@ -691,10 +687,19 @@ def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
 def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:
     """Pose errors ``(B, 6)`` (degrees, metres; ``inf`` where PnP flags the pose) of the
     argmax → PnP pipeline on ``images (B, 3, s, s)`` against ``(R, t)``."""
+    return _argmax_poses(backbone, images, seed, R, t)[1]
+
+
+def _argmax_poses(backbone, images, seed, R, t) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`argmax_pose_errors` and the argmax pixels it used, as flat heatmap indices
+    ``(B, K)`` (the first maximum, as :func:`argmax_keypoints` takes it)."""
     factors = scale_factors(seed.image_size, backbone.heatmap_size)
     with torch.no_grad():
-        uv = argmax_keypoints(backbone(images)).double().numpy()
-    return _pose_errors(seed, to_image_pixels(uv, factors), R, t)
+        heatmaps = backbone(images)
+    uv = argmax_keypoints(heatmaps)  # (B, K, 2) as (u, v)
+    flat = (uv[..., 1] * heatmaps.shape[-1] + uv[..., 0]).numpy()
+    errors = _pose_errors(seed, to_image_pixels(uv.double().numpy(), factors), R, t)
+    return flat, errors
 
 
 def targeted_witness(
