@@ -21,10 +21,11 @@ go and decides the pose error from that (docs/design.md §4.11):
    argmax → PnP pipeline over the product of the regions, hence an upper bound over the
    hull;
 5. PnP is re-solved at the extreme and at random combinations of region pixels (the
-   nonlinear check, ``pb_nonlinear``: how far the linearisation is off);
-6. the argmax → PnP pose is computed at the seed, the hull's vertices and random images
-   first (one outside Ξ is a real counterexample, and then no node is bounded), and at
-   every witness image of the reachability search.
+   nonlinear check, ``pb_nonlinear``: how far the linearisation is off; not for a
+   ``violated`` verdict);
+6. the argmax → PnP pose is computed at the seed and the hull's vertices first, then at
+   random images (one outside Ξ is a real counterexample, and then no node is bounded),
+   and at every witness image of the reachability search.
 
 Every PnP here is Levenberg–Marquardt from the nominal pose
 (:func:`kpstudy.pose.pnp.solve_pnp_batch`), and a pose that PnP flags as not valid (e.g.
@@ -356,11 +357,13 @@ class HullPoseBound:
             ``'linearised'``: module docstring); ``pb_seed_inside`` (the argmax → PnP pose
             of the seed image lies in Ξ: the pipeline this method certifies is right at
             the seed); ``pb_bound`` (6: the linearised bound ``max |M δ|``, degrees then
-            metres); ``pb_combinations`` (the product of the region sizes: an int, a float
+            metres; None when a witness decided before any node was bounded: there are no
+            regions); ``pb_combinations`` (the product of the region sizes: an int, a float
             above 2⁵³); ``pb_exact`` (6: the largest PnP pose error over every
             combination, degrees then metres, ``inf`` if some pose is not valid) when they
             were enumerated, else None; ``pb_nonlinear`` (6: the largest PnP pose error
-            found at region corners; ``inf`` if PnP flags a corner's pose as not valid);
+            found at region corners; ``inf`` if PnP flags a corner's pose as not valid;
+            None for a ``violated`` verdict, which does not use it);
             ``pb_time`` (s; the shared steps this cell used, the search, the enumeration
             and the attack, each counted in full, as if it ran alone); ``pb_nodes``
             (with the refinement's); ``pb_refined`` (the refinement's nodes, 0 if none);
@@ -378,7 +381,10 @@ class HullPoseBound:
         # Witnesses first: the seed, the hull's corners and random images. One whose argmax
         # pose leaves Ξ decides 'violated', and the search is skipped (its regions: all).
         first = _first_points(self.hull, self.sample_seed)
-        early = self._outside(eps, first)
+        corners = 1 + self.hull.n  # the seed and the other vertices, then random images
+        early = self._outside(eps, first[:corners])
+        if early is None:
+            early = self._outside(eps, first[corners:])
         skipped = early is not None
         if skipped:
             hm = self.backbone.heatmap_size
@@ -402,10 +408,10 @@ class HullPoseBound:
             "pb_status": verdict["status"],
             "pb_rule": verdict["rule"],
             "pb_seed_inside": seed_inside,
-            "pb_bound": verdict["bound"].tolist(),
+            "pb_bound": _listed(verdict["bound"]),
             "pb_combinations": verdict["combinations"],
             "pb_exact": None if verdict["exact"] is None else verdict["exact"].tolist(),
-            "pb_nonlinear": verdict["nonlinear"].tolist(),
+            "pb_nonlinear": _listed(verdict["nonlinear"]),
             "pb_time": self._spent + time.perf_counter() - start,
             "pb_nodes": regions.nodes,
             "pb_refined": refined,
@@ -421,12 +427,29 @@ class HullPoseBound:
         """The verdict on Ξ (``eps``) from the regions' ``pixels``: ``status``, ``rule``,
         ``counterexample``, ``bound``, ``combinations``, ``exact``, ``nonlinear``,
         ``involved`` (per keypoint, its pixels in a combination outside Ξ, when
-        enumerated) and ``nodes`` (the regions')."""
+        enumerated) and ``nodes`` (the regions'). ``early``: a witness λ found before the
+        search, which was then skipped (``regions`` are everywhere: no bound)."""
         seed, R, t = self.seed, self.R, self.t
         positions = [to_image_pixels(p, self.factors) for p in pixels]  # (n_k, 2) image px
         deviations = [p - v for p, v in zip(positions, self.V)]
-        bound, extremes = linearised_bound(self.M, deviations)
         combinations = math.prod(len(p) for p in positions)
+        verdict = dict(
+            combinations=combinations if combinations <= 2**53 else float(combinations),
+            bound=None,
+            exact=None,
+            nonlinear=None,
+            involved=None,
+            nodes=regions.nodes,
+        )
+        # Witnesses are real images: their argmax pose decides 'violated'.
+        if early is None:
+            points = [lam for w in regions.witnesses for lam in w.values()]
+            found = self._outside(eps, points)
+            verdict["bound"], extremes = linearised_bound(self.M, deviations)
+        else:
+            found = early
+        if found is not None:
+            return dict(verdict, status="violated", rule="witness", counterexample=found)
 
         # Nonlinear check: PnP at the extreme and at random combinations of region pixels.
         rng = np.random.default_rng(self.sample_seed)
@@ -435,42 +458,26 @@ class HullPoseBound:
         V_corner = np.stack(
             [self.V + np.stack([d[i] for d, i in zip(deviations, row)]) for row in picks]
         )
-        nonlinear = _pose_errors(seed, V_corner, R, t).max(0)
-
-        # Witnesses are real images: their argmax pose decides 'violated'.
-        if early is None:
-            points = [lam for w in regions.witnesses for lam in w.values()]
-            early = self._outside(eps, points) if points else None
-        exact = involved = None
-        if early is not None:
-            status, rule, counterexample = "violated", "witness", early
-        elif combinations <= MAX_COMBINATIONS:
+        verdict["nonlinear"] = _pose_errors(seed, V_corner, R, t).max(0)
+        if combinations <= MAX_COMBINATIONS:
             # Exact over the product of the regions; a combination outside Ξ keeps it
             # open, whatever the linearised bound says.
             exact, farthest, involved = self._shared(
                 ("enumeration", eps.tobytes(), digest(*pixels)),
                 lambda: _enumerate(seed, positions, R, t, eps),
             )
+            verdict.update(exact=exact, involved=involved)
             inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
-            status, rule, counterexample = ("holds" if inside else "unknown"), "enumeration", None
+            rule = "enumeration"
         else:
-            inside = inside_tolerance(kappa * bound, eps)
-            status, rule, counterexample = ("holds" if inside else "unknown"), "linearised", None
+            inside = inside_tolerance(kappa * verdict["bound"], eps)
+            rule = "linearised"
+        status, counterexample = ("holds" if inside else "unknown"), None
         if status == "unknown" and rule == "enumeration":
-            found = self._attack(eps, regions, pixels, farthest)
-            if found is not None:
-                status, rule, counterexample = "violated", "witness", found
-        return dict(
-            status=status,
-            rule=rule,
-            counterexample=counterexample,
-            bound=bound,
-            combinations=combinations if combinations <= 2**53 else float(combinations),
-            exact=exact,
-            nonlinear=nonlinear,
-            involved=involved,
-            nodes=regions.nodes,
-        )
+            counterexample = self._attack(eps, regions, pixels, farthest)
+            if counterexample is not None:
+                status, rule = "violated", "witness"
+        return dict(verdict, status=status, rule=rule, counterexample=counterexample)
 
     def _refine_focus(self, eps, verdict, regions, pixels, budget: int) -> list | None:
         """Per keypoint, the cells an ``unknown`` verdict's second search aims at
@@ -586,7 +593,9 @@ class HullPoseBound:
         """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies
         outside Ξ (half-widths ``eps``), else None. A point found in the model's dtype
         counts only if the float64 model at the exact hull point
-        (``hull.image(λ, float64)``) agrees."""
+        (``hull.image(λ, float64)``) agrees; None for no ``points``."""
+        if not len(points):
+            return None
         lam = torch.unique(torch.stack(list(points)), dim=0)
         outside = np.flatnonzero(~inside_tolerance(self._argmax_errors(lam), eps))
         if not outside.size:
@@ -602,6 +611,11 @@ class HullPoseBound:
             if confirmed.size:
                 return lam[rows[confirmed[0]]].tolist()
         return None
+
+
+def _listed(values) -> list | None:
+    """``values`` (an array) as a list, None as None."""
+    return None if values is None else values.tolist()
 
 
 def _pooling(centers, stride: int, heatmap_size: int):
