@@ -51,13 +51,13 @@ FRIENDLY = dict(
     certified_method="forward",
 )
 #: Its second stage, from the first stage's weights: the verifier's own zonotope over
-#: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, at a constant
-#: learning rate (sub-hulls of about half the trained scale become exact).
+#: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, the learning rate
+#: rising to 3e-4 and annealing (a constant rate costs PCK@2 0.03: docs/findings.md).
 FRIENDLY_FINETUNE = dict(
     backbone="cnn_patch",
     epochs=2,
     lr=3e-4,
-    schedule="constant",
+    schedule="onecycle",
     certified_weight=2.0,
     certified_hulls=1,
     certified_start=0,
@@ -197,8 +197,9 @@ class Profile:
 #: each, and leaves seed 481's m = 2 hull open after 16 nodes in 84 s: docs/findings.md),
 #: the verification-friendly CNN with the zonotope on up to 128 nodes from the hull split
 #: four times (about half the hull per direction at m = 4, the scale its bound term was
-#: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (seed
-#: 481's m = 3 and m = 4 hulls hold after 90 and 114 nodes, 24 s and 21 s).
+#: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (the
+#: shipped model's seed 481 m = 3 and m = 4 hulls stay open after 192 and 128 nodes, 73 s
+#: and 35 s; they need the level about 8 and 10 splits deep: docs/findings.md).
 #: Node budgets give the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
