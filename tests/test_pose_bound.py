@@ -149,7 +149,11 @@ def test_a_counterexample_among_the_first_images_skips_the_search(study):  # noq
     record = certify(backbone, vertices, seed, alpha=1e-3, check_samples=0, pose_bound_timeout=CAP)
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_nodes"] == 0 and record["pb_stopped"] == "witness"
+    # No regions, so no bound over them, and no nonlinear check: a witness decided.
+    assert record["pb_bound"] is None and record["pb_nonlinear"] is None
     lam = torch.tensor(record["pb_counterexample"], dtype=torch.float64)
+    # The seed and the vertices come before the random images: the witness is one of them.
+    assert bool(((lam == 0) | (lam == 1)).all()) and lam.sum() <= 1
     s = backbone.input_size
     hull = ConvexHull(to_model_input(vertices, size=s))
     R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
