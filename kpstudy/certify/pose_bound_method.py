@@ -410,7 +410,7 @@ class HullPoseBound:
             "pb_seed_inside": seed_inside,
             "pb_bound": _listed(verdict["bound"]),
             "pb_combinations": verdict["combinations"],
-            "pb_exact": None if verdict["exact"] is None else verdict["exact"].tolist(),
+            "pb_exact": _listed(verdict["exact"]),
             "pb_nonlinear": _listed(verdict["nonlinear"]),
             "pb_time": self._spent + time.perf_counter() - start,
             "pb_nodes": regions.nodes,

@@ -198,8 +198,8 @@ class Profile:
 #: the verification-friendly CNN with the zonotope on up to 128 nodes from the hull split
 #: four times (about half the hull per direction at m = 4, the scale its bound term was
 #: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (the
-#: shipped model's seed 481 m = 3 and m = 4 hulls stay open after 192 and 128 nodes, 73 s
-#: and 35 s; they need the level about 8 and 10 splits deep: docs/findings.md).
+#: shipped model's seed 481 m = 3 and m = 4 hulls stay open after 192 and 128 nodes; they
+#: hold only from start depths 6–8 and 10, in 252–286 and 1050 nodes: docs/findings.md).
 #: Node budgets give the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
