@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     tr.add_argument(
         "--backbone",
         default=default.backbone,
-        help="cnn (default), cnn_affine, cnn_patch or resnet18",
+        help="cnn (default), cnn_affine, cnn_patch, cnn_patch_smooth or resnet18",
     )
     tr.add_argument("--epochs", type=int, default=default.epochs)
     tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")

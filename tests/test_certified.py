@@ -376,8 +376,9 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     assert h.sum().item() == pytest.approx(card["probe"]["sum"], rel=1e-5, abs=1e-3)
     assert h.abs().sum().item() == pytest.approx(card["probe"]["abs_sum"], rel=1e-5)
     argmax = next(row for row in card["test"] if row["head"] == "argmax")
-    # The accuracy it was shipped for (README: PCK@2 0.97, inside Ξ at α = 1 0.625).
-    assert argmax["pck@2"] >= 0.95 and argmax["inside_xi@1"] >= 0.6
+    # The accuracy it was shipped for (README: PCK@2 0.98, inside Ξ at α = 1 0.705; the
+    # natural CNN's 0.695 less 5 points is the floor).
+    assert argmax["pck@2"] >= 0.95 and argmax["inside_xi@1"] >= 0.645
 
 
 def test_ship_friendly_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):

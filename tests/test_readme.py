@@ -1,6 +1,6 @@
 """The README's worked example runs as written: its ``python -m kpstudy`` and
 ``python -m data_gen`` commands, on a tiny dataset laid out where the README expects the
-quick study's (``results/quick/data``, ``results/quick/models/{cnn,cnn_patch}.pt``)."""
+quick study's (``results/quick/data``, ``results/quick/models/{cnn,cnn_patch_smooth}.pt``)."""
 
 import re
 import shlex
@@ -51,7 +51,7 @@ def workspace(tiny_dataset, tmp_path_factory):
     for kind in ("brightness", "objects"):
         make_perturbations(data, kind, seeds=2, seed=0, input_size=64)
     models = root / "results" / "quick" / "models"
-    for name in ("cnn", "cnn_patch"):
+    for name in ("cnn", "cnn_patch_smooth"):
         config = TrainConfig(backbone=name, epochs=1, batch_size=4, images=8, seed=1)
         train(data, models / f"{name}.pt", config, progress=False)
     return root

@@ -38,7 +38,7 @@ TINY = replace(
     nodes=2,
     local_pose_bound={
         "cnn": dict(pose_bound_timeout=60.0, pose_bound_nodes=1),
-        "cnn_patch": dict(
+        "cnn_patch_smooth": dict(
             pose_bound_method="zonotope",
             pose_bound_timeout=60.0,
             pose_bound_nodes=2,
@@ -46,7 +46,7 @@ TINY = replace(
         ),
     },
     global_pose_bound={
-        m: dict(pose_bound_timeout=60.0, pose_bound_nodes=1) for m in ("cnn", "cnn_patch")
+        m: dict(pose_bound_timeout=60.0, pose_bound_nodes=1) for m in ("cnn", "cnn_patch_smooth")
     },
     figure_images=2,
     workers=1,
@@ -100,10 +100,10 @@ def test_tables_hold_the_grid_and_the_papers_numbers(run):
     assert "Pose-bound method" in (run / "REPORT.md").read_text()
     glob = pd.read_csv(run / "tables" / "t_global.csv")
     # Both CNNs, row by row: the paper's and the verification-friendly one.
-    assert set(local.model) == set(glob.model) == {"cnn", "cnn_patch"}
-    assert set(records.model) == {"cnn", "cnn_patch"}
+    assert set(local.model) == set(glob.model) == {"cnn", "cnn_patch_smooth"}
+    assert set(records.model) == {"cnn", "cnn_patch_smooth"}
     assert set(glob.kind) == {"brightness", "contrast"} and len(glob) == 2 * 2 * 5 * 4
-    assert "`cnn_patch`: " in (run / "REPORT.md").read_text()
+    assert "`cnn_patch_smooth`: " in (run / "REPORT.md").read_text()
     assert glob.paper_time_mean.notna().all() and (glob.clipped_fraction >= 0).all()
     resnet = pd.read_csv(run / "tables" / "t_resnet.csv")
     assert set(resnet.overlapping) == {False, True} and (resnet.alpha == 1.5).all()
@@ -161,7 +161,7 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         ),
         (
             dict(local_pose_bound={"vgg": {}}),
-            "local_pose_bound: expected {'cnn' or 'cnn_patch'",
+            "local_pose_bound: expected {'cnn' or 'cnn_patch_smooth'",
         ),
     ],
 )

@@ -476,3 +476,38 @@ def test_unknown_method_is_refused():
     net = mlp(0)
     with pytest.raises(ValueError, match="method: expected"):
         output_bounds(net, ConvexHull(torch.randn(2, 6).double()), "deeppoly")
+
+
+def test_a_smoothed_patch_decoder_traces_to_the_fused_patch_map_and_a_depthwise_filter():
+    """HeatmapCNNPatchSmoothDecoder (the shipped verification-friendly CNN's backbone):
+    its four transposed convolutions fuse into one patch map, its per-keypoint 3×3 filter
+    stays a grouped convolution, the traced graph is the network in float64, and the
+    zonotope's bounds contain 200 sampled heatmaps and the vertices' (LocalNet checks grouped
+    convolutions' symbol blocks against the dense stack)."""
+    from kpstudy.models.cnn import HeatmapCNNPatchSmoothDecoder
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+    from kpstudy.verify.ops import Conv, PatchConvTranspose
+
+    torch.manual_seed(0)
+    net = HeatmapCNNPatchSmoothDecoder(3)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.2, 0.2)
+                m.running_var.uniform_(0.5, 2.0)
+        net[-1].weight.uniform_(-0.5, 1.0)
+    net = net.double().eval()
+    hull = ConvexHull(hull_vertices(0, 3, (3, 64, 64), spread=0.02, dtype=torch.float64) + 0.5)
+    graph = trace(net, hull.vertices[:1])
+    kinds = [type(n.op) for n in graph.nodes]
+    assert kinds.count(PatchConvTranspose) == 1 and kinds[-1] is Conv
+    assert graph.nodes[-1].op.m.groups == 3
+    region = B.node_region(hull, hull.root(), graph.dtype)
+    with torch.no_grad():
+        x = torch.cat([hull.image(hull.sample(200, 0)), hull.vertices])
+        y = net(x)
+        torch.testing.assert_close(graph.forward(x), y, rtol=1e-12, atol=1e-12)
+        lo, hi = B.propagate(graph, region, zonotope=True)[0].bounds()
+    assert (y >= lo - 1e-9).all() and (y <= hi + 1e-9).all()
+    assert ((hi - lo) > 1e-6).any()

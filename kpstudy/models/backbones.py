@@ -2,13 +2,19 @@
 
 from torch import nn
 
-from kpstudy.models.cnn import HeatmapCNN, HeatmapCNNAffineDecoder, HeatmapCNNPatchDecoder
+from kpstudy.models.cnn import (
+    HeatmapCNN,
+    HeatmapCNNAffineDecoder,
+    HeatmapCNNPatchDecoder,
+    HeatmapCNNPatchSmoothDecoder,
+)
 from kpstudy.models.resnet import HeatmapResNet18
 
 BACKBONES = {
     "cnn": HeatmapCNN,
     "cnn_affine": HeatmapCNNAffineDecoder,
     "cnn_patch": HeatmapCNNPatchDecoder,
+    "cnn_patch_smooth": HeatmapCNNPatchSmoothDecoder,
     "resnet18": HeatmapResNet18,
 }
 
@@ -18,11 +24,12 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
 
     Parameters
     ----------
-    name : {'cnn', 'cnn_affine', 'cnn_patch', 'resnet18'}
+    name : {'cnn', 'cnn_affine', 'cnn_patch', 'cnn_patch_smooth', 'resnet18'}
         ``'cnn'``: 64×64 input and heatmaps, ~6.6e5 parameters; ``'cnn_affine'``: the same
         with an affine decoder (no ReLU after the transposed convolutions);
         ``'cnn_patch'``: the same encoder with an affine decoder whose transposed
-        convolutions' kernels equal their strides, ~3.6e5 parameters (the
+        convolutions' kernels equal their strides, ~3.6e5 parameters;
+        ``'cnn_patch_smooth'``: that decoder then a per-keypoint 3×3 filter (the
         verification-friendly model); ``'resnet18'``: 256×256 input and heatmaps,
         ~1.25e7 parameters.
     num_keypoints : int

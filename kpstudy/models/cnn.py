@@ -8,14 +8,17 @@ last. About 6.6e5 parameters for K = 23, as in the paper (6.57e5).
 :class:`HeatmapCNNAffineDecoder`: the same layers with no ReLU after the transposed
 convolutions, so the decoder (its batch norms folded) is one affine map, a learned linear
 upsampler. Every bound method maps a zonotope through it exactly: the heatmaps' bounds are
-as tight as the encoder's. :class:`HeatmapCNNPatchDecoder`, the verification-friendly
-model kpstudy ships, also makes every transposed convolution's kernel its stride, so each
-encoder position drives its own 4×4 patch of the heatmaps and the zonotope's error
-symbols cost the decoder a sixth or less of the multiply-adds.
+as tight as the encoder's. :class:`HeatmapCNNPatchDecoder` also makes every transposed
+convolution's kernel its stride, so each encoder position drives its own 4×4 patch of the
+heatmaps and the zonotope's error symbols cost the decoder a sixth or less of the
+multiply-adds. :class:`HeatmapCNNPatchSmoothDecoder`, the verification-friendly model
+kpstudy ships, adds a per-keypoint 3×3 filter after it, which places keypoints about as
+precisely as the paper's decoder (docs/design.md §4.5b).
 """
 
 from __future__ import annotations
 
+import torch
 from torch import nn
 
 from kpstudy.models.base import HeatmapBackbone
@@ -83,3 +86,22 @@ class HeatmapCNNPatchDecoder(HeatmapCNNAffineDecoder):
     :class:`HeatmapCNNAffineDecoder`'s multiply-adds there; ~3.6e5 parameters for K = 23."""
 
     decoder_kernels = (2, 1)
+
+
+class HeatmapCNNPatchSmoothDecoder(HeatmapCNNPatchDecoder):
+    """:class:`HeatmapCNNPatchDecoder` followed by a per-keypoint 3×3 linear filter
+    (a depthwise convolution without bias, initialised to the identity):
+    ``(B, 3, 64, 64) → (B, K, 64, 64)``. Each heatmap pixel then reads the patches of up
+    to four encoder positions, at 9 multiply-adds per pixel and keypoint; the decoder
+    stays affine."""
+
+    smoothing = 3
+
+    def __init__(self, keypoints: int = 23) -> None:
+        super().__init__(keypoints)
+        k = self.smoothing
+        smooth = nn.Conv2d(keypoints, keypoints, k, 1, k // 2, groups=keypoints, bias=False)
+        with torch.no_grad():
+            smooth.weight.zero_()
+            smooth.weight[:, 0, k // 2, k // 2] = 1.0
+        self.append(smooth)

@@ -38,11 +38,14 @@ from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 STAGES = ("data", "train", "notebooks", "report")
+#: The verification-friendly CNN's backbone (:mod:`kpstudy.models.cnn`), also its name in
+#: the study's tables and under ``models/``.
+FRIENDLY_MODEL = "cnn_patch_smooth"
 #: The verification-friendly CNN's recipe, first stage (``TrainConfig`` fields beside the
 #: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
 #: 5 % of the hulls' size (docs/findings.md says how it was chosen).
 FRIENDLY = dict(
-    backbone="cnn_patch",
+    backbone=FRIENDLY_MODEL,
     epochs=20,
     certified_weight=2.0,
     certified_scale=0.05,
@@ -54,7 +57,7 @@ FRIENDLY = dict(
 #: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, the learning rate
 #: rising to 3e-4 and annealing (a constant rate costs PCK@2 0.03: docs/findings.md).
 FRIENDLY_FINETUNE = dict(
-    backbone="cnn_patch",
+    backbone=FRIENDLY_MODEL,
     epochs=2,
     lr=3e-4,
     schedule="onecycle",
@@ -70,7 +73,7 @@ FRIENDLY_FINETUNE = dict(
 FRIENDLY_STAGES = (FRIENDLY, FRIENDLY_FINETUNE)
 #: The verification-friendly CNN trained on the quick profile's dataset by
 #: :data:`FRIENDLY_STAGES`.
-SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / "cnn_patch_quick.pt"
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / f"{FRIENDLY_MODEL}_quick.pt"
 
 
 @dataclass(frozen=True)
@@ -92,7 +95,7 @@ class Profile:
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
         run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
-    local_pose_bound, global_pose_bound : per model (``'cnn'``, ``'cnn_patch'``), the
+    local_pose_bound, global_pose_bound : per model (``'cnn'``, :data:`FRIENDLY_MODEL`), the
         pose-bound method's :class:`kpstudy.study.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
@@ -170,10 +173,10 @@ class Profile:
         settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
         for name in ("local_pose_bound", "global_pose_bound"):
             for model, chosen in getattr(self, name).items():
-                if model not in ("cnn", "cnn_patch") or not isinstance(chosen, dict):
+                if model not in ("cnn", FRIENDLY_MODEL) or not isinstance(chosen, dict):
                     raise ValueError(
-                        f"{name}: expected {{'cnn' or 'cnn_patch': {{setting: value}}}}, got "
-                        f"{model!r}: {chosen!r}"
+                        f"{name}: expected {{'cnn' or {FRIENDLY_MODEL!r}: {{setting: value}}}}, "
+                        f"got {model!r}: {chosen!r}"
                     )
                 unknown = sorted(set(chosen) - settings)
                 if unknown:
@@ -198,12 +201,13 @@ class Profile:
 #: the verification-friendly CNN with the zonotope on up to 128 nodes from the hull split
 #: four times (about half the hull per direction at m = 4, the scale its bound term was
 #: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (the
-#: shipped model's seed 481 m = 3 and m = 4 hulls stay open after 192 and 128 nodes; they
-#: hold only from start depths 6–8 and 10, in 252–286 and 1050 nodes: docs/findings.md).
-#: Node budgets give the same verdicts on any machine; the seconds only cap a slow one.
+#: shipped model's seed 481 m = 3 and m = 4 and seed 935 m = 4 hulls stay open after 128
+#: nodes; the first holds from start depth 7 in 226 nodes, the last in 400:
+#: docs/findings.md). Node budgets give the same verdicts on any machine; the seconds only
+#: cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
-    "cnn_patch": dict(
+    FRIENDLY_MODEL: dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=600.0,
         pose_bound_nodes=128,
@@ -218,7 +222,7 @@ LOCAL_POSE_BOUND = {
 #: (at 120 s the cap ended 4 to 12 hulls' searches).
 GLOBAL_POSE_BOUND = {
     model: dict(pose_bound_method="zonotope", pose_bound_timeout=300.0, pose_bound_nodes=3)
-    for model in ("cnn", "cnn_patch")
+    for model in ("cnn", FRIENDLY_MODEL)
 }
 
 PROFILES = {
@@ -256,11 +260,11 @@ PROFILES = {
         resnet_timeout=3600.0,
         local_pose_bound={
             model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
-            for model in ("cnn", "cnn_patch")
+            for model in ("cnn", FRIENDLY_MODEL)
         },
         global_pose_bound={
             model: dict(pose_bound_method="zonotope", pose_bound_timeout=600.0)
-            for model in ("cnn", "cnn_patch")
+            for model in ("cnn", FRIENDLY_MODEL)
         },
         symmetry_backbone="resnet18",
         figure_images=3000,
@@ -433,7 +437,7 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
 
 def checkpoints(out: Path) -> dict[str, Path]:
     """Where the train stage writes each backbone's checkpoint."""
-    names = ("cnn", "cnn_patch", "resnet18")
+    names = ("cnn", FRIENDLY_MODEL, "resnet18")
     return {name: Path(out) / "models" / f"{name}.pt" for name in names}
 
 
@@ -508,8 +512,8 @@ def train_models(
         train(out / "data", path, config, device=device, progress=progress)
 
     # The earlier stages are written only when they are trained here (not with the
-    # shipped checkpoint): models/cnn_patch_stage1.pt, …
-    path = paths["cnn_patch"]
+    # shipped checkpoint): models/cnn_patch_smooth_stage1.pt, …
+    path = paths[FRIENDLY_MODEL]
     if path.is_file() and (retrain_friendly or not friendly(path)):
         path.unlink()
     if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
@@ -519,7 +523,7 @@ def train_models(
     init = digest = None  # the stage before: its checkpoint and its weights' digest
     for i, stage in enumerate(stages):
         last = i == len(stages) - 1
-        file = path if last else Path(out) / "models" / f"cnn_patch_stage{i + 1}.pt"
+        file = path if last else Path(out) / "models" / f"{FRIENDLY_MODEL}_stage{i + 1}.pt"
         stage = stage if digest is None else replace(stage, init=digest)
         if file.is_file() and not made_by(file, stage):  # another recipe's, or begun elsewhere
             file.unlink()
@@ -585,7 +589,7 @@ def run_notebooks(
     campaign = dict(workers=prof.workers, scheduler=scheduler, method=prof.method, nodes=prof.nodes)
     cnn_campaign = dict(
         data_dir=data_dir,
-        checkpoints={name: models[name] for name in ("cnn", "cnn_patch")},
+        checkpoints={name: models[name] for name in ("cnn", FRIENDLY_MODEL)},
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound=prof.local_pose_bound,

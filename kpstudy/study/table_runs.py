@@ -86,7 +86,7 @@ def run_table(
     name : {'t_local', 't_global', 't_resnet'}
         The table (:data:`TABLES`).
     checkpoints : dict
-        ``{model name: checkpoint path}``, e.g. ``{"cnn": …, "cnn_patch": …}``.
+        ``{model name: checkpoint path}``, e.g. ``{"cnn": …, "cnn_patch_smooth": …}``.
     data_dir : path
         The dataset with its perturbation sets.
     out : path
