@@ -478,16 +478,16 @@ def test_unknown_method_is_refused():
         output_bounds(net, ConvexHull(torch.randn(2, 6).double()), "deeppoly")
 
 
-def test_a_smoothed_patch_decoder_traces_to_the_fused_patch_map_and_a_depthwise_filter():
+def test_a_smoothed_patch_decoder_traces_to_one_filtered_patch_map():
     """HeatmapCNNPatchSmoothDecoder (the shipped verification-friendly CNN's backbone):
-    its four transposed convolutions fuse into one patch map, its per-keypoint 3×3 filter
-    stays a grouped convolution, the traced graph is the network in float64, and the
-    zonotope's bounds contain 200 sampled heatmaps and the vertices' (LocalNet checks grouped
-    convolutions' symbol blocks against the dense stack)."""
+    its four transposed convolutions and its per-keypoint 3×3 filter fuse into one
+    transposed convolution with overlapping 6×6 patches whose linear map is the pair's,
+    the traced graph is the network in float64, and the zonotope's bounds contain 200
+    sampled heatmaps and the vertices'."""
     from kpstudy.models.cnn import HeatmapCNNPatchSmoothDecoder
     from kpstudy.verify import bounds as B
     from kpstudy.verify.graph import trace
-    from kpstudy.verify.ops import Conv, PatchConvTranspose
+    from kpstudy.verify.ops import FilteredPatchConvTranspose, PatchConvTranspose
 
     torch.manual_seed(0)
     net = HeatmapCNNPatchSmoothDecoder(3)
@@ -501,10 +501,16 @@ def test_a_smoothed_patch_decoder_traces_to_the_fused_patch_map_and_a_depthwise_
     hull = ConvexHull(hull_vertices(0, 3, (3, 64, 64), spread=0.02, dtype=torch.float64) + 0.5)
     graph = trace(net, hull.vertices[:1])
     kinds = [type(n.op) for n in graph.nodes]
-    assert kinds.count(PatchConvTranspose) == 1 and kinds[-1] is Conv
-    assert graph.nodes[-1].op.m.groups == 3
+    assert kinds[-1] is FilteredPatchConvTranspose and kinds.count(kinds[-1]) == 1
+    fused = graph.nodes[-1].op
+    assert type(fused.patch) is PatchConvTranspose and fused.m.kernel_size == (6, 6)
     region = B.node_region(hull, hull.root(), graph.dtype)
     with torch.no_grad():
+        z = torch.randn(5, *graph.nodes[-2].shape, dtype=torch.float64)
+        pair = fused.filter.linear(fused.patch.linear(z))
+        torch.testing.assert_close(fused.linear(z), pair, rtol=1e-12, atol=1e-12)
+        abs_pair = fused.filter.abs_linear(fused.patch.abs_linear(z.abs()))
+        assert (fused.abs_linear(z.abs()) <= abs_pair + 1e-12).all()
         x = torch.cat([hull.image(hull.sample(200, 0)), hull.vertices])
         y = net(x)
         torch.testing.assert_close(graph.forward(x), y, rtol=1e-12, atol=1e-12)

@@ -106,6 +106,44 @@ class PatchConvTranspose(ConvTranspose):
         return self.m(x) + self.bias.to(x.dtype).repeat(1, h, w)
 
 
+class FilteredPatchConvTranspose(ConvTranspose):
+    """A patch-local transposed convolution (kernel = stride ``s``, e.g. a
+    :class:`PatchConvTranspose`) followed by a per-channel convolution of stride 1
+    (``k × k``, zero padding ``p``, one filter per channel): the same affine map, its linear
+    part one transposed convolution of kernel ``s + k − 1``, stride ``s`` and padding
+    ``k − 1 − p``, whose patches overlap by ``k − 1``.
+
+    The bias stays the pair's (:meth:`forward` runs both), since the filter's zero padding
+    makes it vary near the border.
+
+    Parameters
+    ----------
+    patch : ConvTranspose
+        Weight ``(C_in, C, s, s)``.
+    filter : Conv
+        Weight ``(C, 1, k, k)``, ``groups = C``.
+    """
+
+    def __init__(self, patch: ConvTranspose, filter: Conv):
+        W, f = patch.m.weight.detach().double(), filter.m.weight.detach().double()
+        c_in, c, s, _ = W.shape
+        k, p = f.shape[-1], filter.m.padding[0]
+        weight = W.new_zeros(c_in, c, s + k - 1, s + k - 1)
+        for ty in range(k):
+            for tx in range(k):
+                y, x = k - 1 - ty, k - 1 - tx
+                weight[:, :, y : y + s, x : x + s] += W * f[:, 0, ty, tx][None, :, None, None]
+        dtype = patch.m.weight.dtype
+        m = nn.ConvTranspose2d(c_in, c, s + k - 1, s, k - 1 - p, bias=False).to(dtype)
+        with torch.no_grad():
+            m.weight.copy_(weight)
+        super().__init__(m.eval().requires_grad_(False))
+        self.patch, self.filter = patch, filter
+
+    def forward(self, x):
+        return self.filter.forward(self.patch.forward(x))
+
+
 class Dense(_Weighted):
     def _map(self, x, w):
         return F.linear(x, w)
