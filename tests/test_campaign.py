@@ -204,6 +204,8 @@ def test_bad_settings_fail_before_any_work(study, tmp_path):
         (Settings(str(checkpoint), str(data), pose_bound_nodes=0), "^pose_bound_nodes"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=-1), "^pose_bound_start"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=99), "^pose_bound_start"),
+        (Settings(str(checkpoint), str(data), pose_bound_start_splits=-0.5), "^pose_bound_start_s"),
+        (Settings(str(checkpoint), str(data), pose_bound_start_splits=13), "^pose_bound_start_s"),
         (Settings(str(checkpoint), str(data), pose_bound_refine_nodes=-1), "^pose_bound_refine"),
     ]
     for settings, name in bad:

@@ -576,3 +576,23 @@ def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, mon
     assert refined["pb_status"] == "holds" and refined["pb_rule"] == "enumeration"
     assert refined["pb_refined"] == 1 and refined["pb_nodes"] == 3
     assert refined["pb_pixels"] == [1] * len(centers)
+
+
+def test_the_start_depth_grows_with_the_hulls_perturbed_images(scene):
+    """``start_splits`` adds ⌈start_splits · n⌉ splits for a hull of n perturbed images (at
+    most MAX_START_DEPTH); a negative or non-numeric value is refused by name."""
+    from kpstudy.verify.reachable import MAX_START_DEPTH
+
+    seed, R, t, _, _ = scene
+    centers, *_ = _stride1_cells(scene)
+    images = torch.rand(5, 1, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    M = np.zeros((6, 46))
+    for n, splits, depth in [(1, 1.5, 3), (3, 1.5, 6), (4, 1.75, 8), (4, 12.0, MAX_START_DEPTH)]:
+        hull = ConvexHull(images[: n + 1])
+        pose = pb.HullPoseBound(
+            _Peaks(centers), hull, seed, R, t, M, start_depth=1, start_splits=splits
+        )
+        assert pose.search["start_depth"] == depth
+    for bad in (-0.5, "2", True):
+        with pytest.raises(ValueError, match="^start_splits"):
+            pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, M, start_splits=bad)

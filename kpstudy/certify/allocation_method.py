@@ -294,6 +294,7 @@ def certify_cells(
     pose_bound_method: str = "forward",
     pose_bound_nodes: int | None = None,
     pose_bound_start_depth: int = 0,
+    pose_bound_start_splits: float = 0.0,
     pose_bound_refine_nodes: int = 0,
     tolerance_units: str = "heatmap",
 ) -> dict:
@@ -323,10 +324,10 @@ def certify_cells(
         Its cell side in heatmap pixels (1: the argmax pixel itself).
     pose_bound_method : str
         Its bound method (``'forward'`` or ``'zonotope'``).
-    pose_bound_nodes, pose_bound_start_depth : int
+    pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
         Its node budget (``None``: the seconds alone) and the hull's splits before the
         first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
-        ``start_depth``).
+        ``start_depth``, ``start_splits``).
     pose_bound_refine_nodes : int
         Its focused second searches for an ``unknown`` verdict
         (:class:`~kpstudy.certify.pose_bound_method.HullPoseBound`'s ``refine_nodes``).
@@ -397,6 +398,7 @@ def certify_cells(
                     method=pose_bound_method,
                     max_nodes=pose_bound_nodes,
                     start_depth=pose_bound_start_depth,
+                    start_splits=pose_bound_start_splits,
                     refine_nodes=pose_bound_refine_nodes,
                     sample_seed=sample_seed,
                 )

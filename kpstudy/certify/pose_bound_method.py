@@ -70,7 +70,7 @@ from kpstudy.models.proxy import build_proxy
 from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp_batch
 from kpstudy.verify import Regions, reachable_argmax
-from kpstudy.verify.reachable import check_search
+from kpstudy.verify.reachable import MAX_START_DEPTH, check_search
 
 __all__ = [
     "ENUMERATION_CHUNK",
@@ -282,6 +282,11 @@ class HullPoseBound:
     start_depth : int
         Splits of the hull before the first bounds
         (:func:`kpstudy.verify.reachable_argmax`).
+    start_splits : float
+        More splits before the first bounds per perturbed image of the hull: the search
+        starts at depth ``start_depth + ⌈start_splits · n⌉`` (at most
+        :data:`~kpstudy.verify.reachable.MAX_START_DEPTH`), nodes of about
+        ``2^−start_splits`` of the hull per direction whatever its ``n``.
     refine_nodes : int
         Nodes for focused second searches where the verdict is ``unknown`` (0: none).
         Each goes on from where the search so far stopped (same method and timeout) and
@@ -310,6 +315,7 @@ class HullPoseBound:
         method: str = "forward",
         max_nodes: int | None = None,
         start_depth: int = 0,
+        start_splits: float = 0.0,
         refine_nodes: int = 0,
         random_corners: int = 64,
         sample_seed: int = 0,
@@ -317,6 +323,12 @@ class HullPoseBound:
         if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
             raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
         check_search(method, timeout, max_nodes, start_depth)
+        number = isinstance(start_splits, (int, float)) and not isinstance(start_splits, bool)
+        if not (number and 0 <= start_splits <= MAX_START_DEPTH):
+            raise ValueError(
+                f"start_splits: expected a number in [0, {MAX_START_DEPTH}], got {start_splits!r}"
+            )
+        start_depth = min(MAX_START_DEPTH, start_depth + math.ceil(start_splits * hull.n))
         self.backbone, self.hull, self.seed, self.R, self.t = backbone, hull, seed, R, t
         self.M, self.stride, self.method = M, int(stride), method
         self.random_corners, self.sample_seed = random_corners, sample_seed

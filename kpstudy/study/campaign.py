@@ -112,9 +112,10 @@ class Settings:
     pose_bound_timeout, pose_bound_stride, pose_bound_method :
         The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`):
         seconds per hull (``None`` skips it), cell side, bound method.
-    pose_bound_nodes, pose_bound_start_depth :
+    pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
         Its node budget per hull (``None``: the seconds alone decide; with a budget the
-        seconds only cap a slow machine) and the hull's splits before the first bounds.
+        seconds only cap a slow machine) and the hull's splits before the first bounds:
+        ``start_depth + ⌈start_splits · m⌉`` for a hull of ``m`` perturbed images.
     pose_bound_refine_nodes :
         Its focused second search (0: none).
     tolerance_units : {'heatmap', 'paper'}
@@ -145,6 +146,11 @@ class Settings:
     )
     pose_bound_start_depth: int = _setting(
         0, "splits of each hull before the pose-bound method's first bounds"
+    )
+    pose_bound_start_splits: float = _setting(
+        0.0,
+        "more splits of each hull before the pose-bound method's first bounds, per "
+        "perturbed image of the hull (rounded up)",
     )
     pose_bound_refine_nodes: int = _setting(
         0,
@@ -861,6 +867,10 @@ def _check_settings(settings: Settings) -> None:
         raise ValueError(
             f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
         )
+
+    splits = settings.pose_bound_start_splits
+    if isinstance(splits, bool) or not isinstance(splits, (int, float)) or not 0 <= splits <= 12:
+        raise ValueError(f"pose_bound_start_splits: expected a number in [0, 12], got {splits!r}")
 
     from kpstudy.pose.allocation import allocation_scale
 

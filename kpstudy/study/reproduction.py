@@ -99,7 +99,8 @@ class Profile:
         pose-bound method's :class:`kpstudy.study.campaign.Settings` fields in T-local and
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
-        hull: the same verdicts on any machine), ``pose_bound_start_depth``. A model left
+        hull: the same verdicts on any machine), ``pose_bound_start_depth``,
+        ``pose_bound_start_splits``. A model left
         out skips the method. ``'zonotope'`` is far tighter on the CNN than ``'forward'``
         but takes seconds to minutes per node on 2 CPU cores.
     precision : the natural CNN's and ResNet-18's training forward pass
@@ -198,20 +199,20 @@ class Profile:
 #: The quick profile's pose-bound method in T-local per model: the paper's CNN with
 #: forward bounds on the root (its zonotope proves 3 of the 4 m = 2 hulls, but in 26-392 s
 #: each, and leaves seed 481's m = 2 hull open after 16 nodes in 84 s: docs/findings.md),
-#: the verification-friendly CNN with the zonotope on up to 128 nodes from the hull split
-#: four times (about half the hull per direction at m = 4, the scale its bound term was
-#: trained on), then up to 64 nodes aimed at the cells that keep an `unknown` open (the
-#: shipped model's seed 481 m = 3 and m = 4 and seed 935 m = 4 hulls stay open after 128
-#: nodes; the first holds from start depth 7 in 226 nodes, the last in 400:
-#: docs/findings.md). Node budgets give the same verdicts on any machine; the seconds only
-#: cap a slow one.
+#: the verification-friendly CNN with the zonotope from the hull split ⌈1.75 m⌉ times (4, 6
+#: and 7 splits at m = 2, 3, 4: nodes of about a third of the hull per direction, where
+#: its hardest hulls close; a shallower start bounds the same number of deeper nodes after
+#: larger, costlier and undecisive ones), up to 768 nodes and then 64 aimed at the cells
+#: that keep an `unknown` open (seed 935's m = 4 hull takes about 610 nodes from any start
+#: depth from 6 to 8, every other one 280 or fewer: docs/findings.md). Node budgets give
+#: the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
     FRIENDLY_MODEL: dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=600.0,
-        pose_bound_nodes=128,
-        pose_bound_start_depth=4,
+        pose_bound_nodes=768,
+        pose_bound_start_splits=1.75,
         pose_bound_refine_nodes=64,
     ),
 }
