@@ -7,10 +7,11 @@ Supported: ``Conv2d``, ``ConvTranspose2d``, ``BatchNorm2d`` (eval), ``ReLU``,
 dimension, ``Identity`` and ``Dropout`` (eval); more modules through :data:`MODULES`
 (see :mod:`kpstudy.verify.operators`, "Adding a layer"). Anything else is refused with an
 error naming the operation and the node. A batch norm that alone follows a convolution
-is folded into it (one node, named ``conv+bn``), and a chain of transposed convolutions
+is folded into it (one node, named ``conv+bn``), a chain of transposed convolutions
 whose kernels equal their strides is fused into one where that saves multiply-adds
-(:class:`~kpstudy.verify.ops.PatchConvTranspose`), unless the graph is traced
-``differentiable``: then every operator keeps the model's own modules and the affine
+(:class:`~kpstudy.verify.ops.PatchConvTranspose`), and such a layer with a per-channel
+filter that alone reads it (:class:`~kpstudy.verify.ops.FilteredPatchConvTranspose`),
+unless the graph is traced ``differentiable``: then every operator keeps the model's own modules and the affine
 offsets are computed from them at each use, so bounds carry gradients to every parameter
 (certified training, :mod:`kpstudy.models.certified`).
 """
