@@ -323,11 +323,7 @@ class HullPoseBound:
         if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
             raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
         check_search(method, timeout, max_nodes, start_depth)
-        number = isinstance(start_splits, (int, float)) and not isinstance(start_splits, bool)
-        if not (number and 0 <= start_splits <= MAX_START_DEPTH):
-            raise ValueError(
-                f"start_splits: expected a number in [0, {MAX_START_DEPTH}], got {start_splits!r}"
-            )
+        check_start_splits(start_splits)
         start_depth = min(MAX_START_DEPTH, start_depth + math.ceil(start_splits * hull.n))
         self.backbone, self.hull, self.seed, self.R, self.t = backbone, hull, seed, R, t
         self.M, self.stride, self.method = M, int(stride), method
@@ -623,6 +619,16 @@ class HullPoseBound:
             if confirmed.size:
                 return lam[rows[confirmed[0]]].tolist()
         return None
+
+
+def check_start_splits(start_splits, name: str = "start_splits") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``start_splits`` (:class:`HullPoseBound`'s)
+    is a number in ``[0, MAX_START_DEPTH]``."""
+    number = isinstance(start_splits, (int, float)) and not isinstance(start_splits, bool)
+    if not (number and 0 <= start_splits <= MAX_START_DEPTH):
+        raise ValueError(
+            f"{name}: expected a number in [0, {MAX_START_DEPTH}], got {start_splits!r}"
+        )
 
 
 def _listed(values) -> list | None:

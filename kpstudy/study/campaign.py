@@ -868,9 +868,9 @@ def _check_settings(settings: Settings) -> None:
             f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
         )
 
-    splits = settings.pose_bound_start_splits
-    if isinstance(splits, bool) or not isinstance(splits, (int, float)) or not 0 <= splits <= 12:
-        raise ValueError(f"pose_bound_start_splits: expected a number in [0, 12], got {splits!r}")
+    from kpstudy.certify.pose_bound_method import check_start_splits
+
+    check_start_splits(settings.pose_bound_start_splits, "pose_bound_start_splits")
 
     from kpstudy.pose.allocation import allocation_scale
 

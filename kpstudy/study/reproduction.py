@@ -100,9 +100,9 @@ class Profile:
         T-global (beside the allocation method): ``pose_bound_method``,
         ``pose_bound_timeout`` (seconds per hull), ``pose_bound_nodes`` (a node budget per
         hull: the same verdicts on any machine), ``pose_bound_start_depth``,
-        ``pose_bound_start_splits``. A model left
-        out skips the method. ``'zonotope'`` is far tighter on the CNN than ``'forward'``
-        but takes seconds to minutes per node on 2 CPU cores.
+        ``pose_bound_start_splits``. A model left out skips the method. ``'zonotope'`` is
+        far tighter on the CNN than ``'forward'`` but takes seconds to minutes per node on
+        2 CPU cores.
     precision : the natural CNN's and ResNet-18's training forward pass
         (:class:`kpstudy.models.training.TrainConfig`'s ``precision``; the verification-
         friendly CNN's recipe keeps its own).

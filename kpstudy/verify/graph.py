@@ -11,9 +11,9 @@ is folded into it (one node, named ``conv+bn``), a chain of transposed convoluti
 whose kernels equal their strides is fused into one where that saves multiply-adds
 (:class:`~kpstudy.verify.ops.PatchConvTranspose`), and such a layer with a per-channel
 filter that alone reads it (:class:`~kpstudy.verify.ops.FilteredPatchConvTranspose`),
-unless the graph is traced ``differentiable``: then every operator keeps the model's own modules and the affine
-offsets are computed from them at each use, so bounds carry gradients to every parameter
-(certified training, :mod:`kpstudy.models.certified`).
+unless the graph is traced ``differentiable``: then every operator keeps the model's own
+modules and the affine offsets are computed from them at each use, so bounds carry
+gradients to every parameter (certified training, :mod:`kpstudy.models.certified`).
 """
 
 from __future__ import annotations
