@@ -517,3 +517,48 @@ def test_a_smoothed_patch_decoder_traces_to_one_filtered_patch_map():
         lo, hi = B.propagate(graph, region, zonotope=True)[0].bounds()
     assert (y >= lo - 1e-9).all() and (y <= hi + 1e-9).all()
     assert ((hi - lo) > 1e-6).any()
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_an_affine_tail_split_off_carries_the_heads_symbols_exactly(smooth):
+    """``Graph.split_affine_tail`` cuts a patch decoder's graph after its last ReLU: the
+    head's zonotope (symbols in blocks) through the tail is the whole pass's output in
+    float64; the tail narrowed to some output channels gives those channels; and the
+    tail on the head's symbols moved into the radius contains the exact bounds."""
+    from kpstudy.models.cnn import HeatmapCNNPatchSmoothDecoder
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify import symbols
+    from kpstudy.verify.graph import trace
+
+    if smooth:
+        torch.manual_seed(1)
+        net, shape, spread = HeatmapCNNPatchSmoothDecoder(3).double().eval(), (3, 64, 64), 0.02
+    else:
+        net, shape, spread = PatchNet(1).double(), (2, 8, 8), 0.5
+    hull = ConvexHull(hull_vertices(1, 3, shape, spread=spread, dtype=torch.float64) + 0.5)
+    graph = trace(net, hull.vertices[:1])
+    head, tail = graph.split_affine_tail()
+    assert head.nodes[-1].op.kind == "relu" and len(tail.nodes) == 2
+    assert trace(nn.Sequential(net, nn.ReLU()), hull.vertices[:1]).split_affine_tail() is None
+    nodes = hull.split(hull.split(hull.root()))
+    region = B.node_region(hull, nodes, graph.dtype)
+    with torch.no_grad():
+        whole = B.propagate(graph, region, zonotope=True, dense=False)[0]
+        inner = B.propagate(head, region, zonotope=True, dense=False)[0]
+        out = B.propagate(tail, inner, zonotope=True, dense=False)[0]
+        dense = symbols.dense(out.mid, out.blocks, out.rows)
+        torch.testing.assert_close(dense, symbols.dense(whole.mid, whole.blocks, whole.rows))
+        torch.testing.assert_close(out.rad, whole.rad)
+        channels = torch.tensor([2, 0])
+        narrow = tail.output_channels(channels)
+        part = B.propagate(narrow, inner.select(torch.tensor([1, 3])), zonotope=True, dense=False)[0]
+        lo, hi = part.bounds()
+        want_lo, want_hi = (b[[1, 3]][:, channels] for b in out.bounds())
+        torch.testing.assert_close(lo, want_lo)
+        torch.testing.assert_close(hi, want_hi)
+        x = torch.randn(4, *tail.nodes[0].shape, dtype=torch.float64)
+        torch.testing.assert_close(narrow.forward(x), tail.forward(x)[:, channels])
+        loose_lo, loose_hi = B.propagate(tail, inner.without_symbols())[0].bounds()
+        exact_lo, exact_hi = out.bounds()
+    assert (loose_lo <= exact_lo + 1e-12).all() and (loose_hi >= exact_hi - 1e-12).all()
+    assert ((exact_lo - loose_lo) > 1e-6).any()  # the symbols' signs were worth keeping

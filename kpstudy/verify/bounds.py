@@ -120,6 +120,21 @@ class Region:
         high = -domain_min(-(self.mid[:, :q] + self.rad), self.domain) + spread
         return low, high
 
+    def without_symbols(self) -> Region:
+        """The same bounds with the error symbols' reach moved into the radius (sound;
+        what the symbols share is lost)."""
+        q = self.rad.shape[1]
+        rad = self.rad.clone()
+        rad[:, 0] += self.reach()
+        return Region(self.mid[:, :q], rad, self.domain)
+
+    def select(self, rows: torch.Tensor) -> Region:
+        """The regions ``rows`` (bool ``(B,)`` or indices) of the batch."""
+        blocks = self.blocks
+        if blocks is not None:
+            blocks = [symbols.Block(b.coeff[rows], b.start, b.y, b.x) for b in blocks]
+        return Region(self.mid[rows], self.rad[rows], self.domain, blocks, self.rows)
+
     def to_interval(self) -> Region:
         return Region.interval(*self.bounds())
 
@@ -156,12 +171,18 @@ def propagate(
     (``time.perf_counter()`` seconds) it raises :class:`BoundsTimeout` between two layers:
     one node of a large zonotope can take minutes.
     """
-    q = region.mid.shape[1]
+    q = region.rad.shape[1]
     if max_generators is None:
         max_generators = symbol_budget(graph, q)
     p = operators.Pass(graph, q, region.domain, max_generators)
     values: list[tuple | None] = [None] * len(graph.nodes)  # (mid, rad, blocks) per node
-    values[0] = (region.mid, region.rad, [] if zonotope else None)
+    if region.blocks is not None or region.mid.shape[1] > q:  # symbols of an earlier pass
+        if not zonotope:
+            raise ValueError("region: a region with error symbols needs zonotope=True")
+        p.made = region.rows if region.blocks is not None else region.mid.shape[1]
+        values[0] = (region.mid, region.rad, region.blocks)
+    else:
+        values[0] = (region.mid, region.rad, [] if zonotope else None)
     remaining = [len(c) for c in graph.consumers]
     for i, node in enumerate(graph.nodes[1:], start=1):
         rule = operators.rules(node.op.kind)

@@ -97,6 +97,47 @@ class Graph:
             values.append(node.op.forward(*(values[j] for j in node.inputs)))
         return values[-1]
 
+    def split_affine_tail(self) -> tuple[Graph, Graph] | None:
+        """The graph as a head up to its last non-affine node and the affine tail from
+        there to the output (node 0 of the tail stands for the head's output); None when
+        the output is not an affine map of one such node (or nothing precedes it).
+
+        A zonotope maps exactly through the tail, so a caller can bound its output from
+        the head's value cheaply first (the symbols moved into the radius) and pay for
+        the symbols through the tail only where that is not enough
+        (:func:`kpstudy.verify.reachable.reachable_argmax`)."""
+        last = len(self.nodes)
+        k = None
+        for start in range(last - 1, 1, -1):
+            node = self.nodes[start]
+            if node.op.kind != "affine":
+                break
+            tail = self.nodes[start:]
+            if min(j for n in tail for j in n.inputs) >= start - 1:
+                k = start
+        if k is None:
+            return None
+        head = Graph(self.nodes[:k], self.dtype, self.differentiable)
+        anchor = Node("tail input", None, (), self.nodes[k - 1].shape)
+        tail = [
+            Node(n.name, n.op, tuple(j - (k - 1) for j in n.inputs), n.shape, n.offset)
+            for n in self.nodes[k:]
+        ]
+        return head, Graph([anchor, *tail], self.dtype, self.differentiable)
+
+    def output_channels(self, channels: torch.Tensor) -> Graph | None:
+        """The graph with its output node computing only channels ``channels`` (indices
+        of a ``(C, H, W)`` output), or None where that node is not a convolution or
+        transposed convolution of one group (:func:`kpstudy.verify.ops.output_channels`)."""
+        last = self.nodes[-1]
+        op = ops.output_channels(last.op, channels) if len(last.shape) == 3 else None
+        if op is None:
+            return None
+        i = len(self.nodes) - 1
+        shape = (len(channels), *last.shape[1:])
+        node = Node(last.name, op, last.inputs, shape, self.offset(i)[:, channels].detach())
+        return Graph([*self.nodes[:-1], node], self.dtype)
+
     def offset(self, i: int) -> torch.Tensor:
         """``forward(0)`` of affine node ``i``, ``(1, *shape)``: stored, or computed from the
         live modules (with their gradients) in a differentiable graph."""

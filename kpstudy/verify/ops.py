@@ -81,6 +81,39 @@ class ConvTranspose(_Weighted):
         )
 
 
+def output_channels(op: Op, channels: torch.Tensor) -> Op | None:
+    """``op``'s output channels ``channels`` (indices) alone: a convolution or transposed
+    convolution (``groups = 1``) holding only their weights, whose :meth:`forward` is
+    ``op``'s own sliced (biases stay exact); None for any other operator."""
+    if not isinstance(op, (Conv, ConvTranspose)) or op.m.groups != 1:
+        return None
+    m = op.m
+    transposed = isinstance(op, ConvTranspose)
+    weight = m.weight.detach()[:, channels] if transposed else m.weight.detach()[channels]
+    module = type(m).__new__(type(m))  # the same geometry, its own weight, no bias
+    module.__dict__.update(m.__dict__)
+    module._parameters = {"weight": nn.Parameter(weight, requires_grad=False), "bias": None}
+    module.out_channels = len(channels)
+    return (_ConvTransposeChannels if transposed else _ConvChannels)(module, op, channels)
+
+
+class _Channels:
+    def __init__(self, m: nn.Module, source: Op, channels: torch.Tensor):
+        super().__init__(m)
+        self.source, self.channels = source, channels
+
+    def forward(self, x):
+        return self.source.forward(x)[:, self.channels]
+
+
+class _ConvChannels(_Channels, Conv):
+    pass
+
+
+class _ConvTransposeChannels(_Channels, ConvTranspose):
+    pass
+
+
 class PatchConvTranspose(ConvTranspose):
     """A transposed convolution whose kernel is its stride ``s`` (no padding), with a bias
     ``(C_out, s, s)`` that repeats over the output's ``s × s`` patches: what a chain of

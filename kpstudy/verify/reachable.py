@@ -334,6 +334,8 @@ class _Reach:
         self.carried: list = []
         self.witnesses: list[dict[int, torch.Tensor]] = [{} for _ in sizes]
         self.tol_abs = absolute_tol(graph, input_set, tol)
+        #: ``(head, tail)`` of a zonotope search on a graph with an affine tail, else None.
+        self.tail = graph.split_affine_tail() if method == "zonotope" else None
 
     def resume(self, regions: Regions) -> list:
         """Take over ``regions``' witnesses and :class:`Frontier`; the frontier's entries
@@ -385,7 +387,7 @@ class _Reach:
         of :attr:`focus` without a witness, and a closed node's indices join
         :attr:`possible`."""
         self.witness(self.set.node_points(nodes)[:, -1])  # the centres
-        kept = self.undominated(nodes) & parent
+        kept = self.undominated(nodes, parent)
         unreached = kept & ~self.reached
         open_ = (unreached & self.focus).flatten(1).any(1)
         parked = ~open_ & unreached.flatten(1).any(1)  # open but for the focus
@@ -395,34 +397,87 @@ class _Reach:
             self.parked.append((nodes[parked], kept[parked], level))
         return Step(kept, open_)
 
-    def undominated(self, nodes: torch.Tensor) -> torch.Tensor:
-        """Indices not provably beaten in each node, ``(B, G, S)`` bool."""
+    def undominated(self, nodes: torch.Tensor, parent: torch.Tensor) -> torch.Tensor:
+        """Indices of ``parent (B, G, S)`` not provably beaten in each node, ``(B, G, S)``
+        bool.
+
+        A zonotope whose output is an affine map of the last ReLU (the patch decoder) is
+        bounded there first with its symbols in the radius: a node where that leaves no
+        index without a witness is closed on those bounds (the indices it keeps are
+        reached, so the possible sets are the same), and only the others carry their
+        symbols through the tail to the exact test."""
         region = node_region(self.set, nodes, self.graph.dtype)
         if self.method == "ibp":
             region = region.to_interval()
         zonotope = self.method == "zonotope"
-        out, _ = propagate(
-            self.graph, region, zonotope=zonotope, deadline=self.deadline, dense=False
-        )
+        if not zonotope or self.tail is None:
+            out, _ = propagate(
+                self.graph, region, zonotope=zonotope, deadline=self.deadline, dense=False
+            )
+            return self._exact(out) & parent
+        head, tail = self.tail
+        inner, _ = propagate(head, region, zonotope=True, deadline=self.deadline, dense=False)
+        loose, _ = propagate(tail, inner.without_symbols())
+        lower, upper = loose.bounds()
+        lower = self._padded(lower.flatten(1), float("-inf"))
+        upper = self._padded(upper.flatten(1), 0.0)
+        best = lower.amax(-1, keepdim=True)
+        kept = ~(best > upper + self.tol_abs) & self.valid & parent
+        open_ = kept & ~self.reached
+        exact = open_.flatten(1).any(1)
+        if not exact.any():
+            return kept
+        inner = inner.select(exact)
+        groups = open_[exact].any(0).any(-1).nonzero().flatten()  # the groups worth it
+        narrow = self._channels(tail, groups) if len(groups) < self.G else None
+        if narrow is None:
+            out, _ = propagate(tail, inner, zonotope=True, dense=False)
+            kept[exact] = self._exact(out) & parent[exact]
+        else:
+            out, _ = propagate(narrow, inner, zonotope=True, dense=False)
+            rows = exact.nonzero()
+            kept[rows, groups] = self._exact(out, groups) & parent[rows, groups]
+        return kept
+
+    def _channels(self, tail, groups: torch.Tensor):
+        """``tail`` computing groups ``groups`` alone where each group is one channel of
+        its ``(C, H, W)`` output (a heatmap per keypoint), else None."""
+        shape = tail.nodes[-1].shape
+        if not self.uniform or len(shape) != 3 or tuple(shape[:1]) != (self.G,):
+            return None
+        return tail.output_channels(groups)
+
+    def _exact(self, out, groups: torch.Tensor | None = None) -> torch.Tensor:
+        """Indices not provably beaten, ``(B, G, S)`` bool, from the output's bounds;
+        ``(B, len(groups), S)`` from an output of those (equal-sized) groups alone."""
+        if groups is None:
+            valid, flat, padded = self.valid, self.flat, self._padded
+        else:
+            valid = self.valid[groups]
+            flat = torch.arange(valid.numel()).view(valid.shape)
+
+            def padded(y, fill):
+                return y.unflatten(-1, valid.shape)
+
         q = out.rad.shape[1]  # rows of the affine part in θ; the symbols follow
         mid, rad = out.mid[:, :q].flatten(2), out.rad.flatten(2)
-        low = self._padded(mid - rad, float("-inf"))  # a missing entry never beats
-        up = self._padded(mid + rad, 0.0)
+        low = padded(mid - rad, float("-inf"))  # a missing entry never beats
+        up = padded(mid + rad, 0.0)
         reach = out.reach()
-        spread = self._padded(reach.flatten(1), 0.0) if torch.is_tensor(reach) else reach
+        spread = padded(reach.flatten(1), 0.0) if torch.is_tensor(reach) else reach
         lower = domain_min(low, out.domain) - spread  # (B, G, S)
         upper = -domain_min(-up, out.domain) + spread
         top = lower.topk(self.k, dim=-1).indices  # (B, G, k)
         # Intervals first (ℓ_c ≥ lower_c > upper_i), then, for what they leave, the
         # linear bounds: min over θ of ℓ_c(θ) − u_i(θ), less the symbols' share.
-        beaten = (lower.gather(2, top).amax(-1, keepdim=True) > upper + self.tol_abs) & self.valid
+        beaten = (lower.gather(2, top).amax(-1, keepdim=True) > upper + self.tol_abs) & valid
         # One group at a time, over the indices the intervals leave and the candidates:
         # their symbols alone are read (a dense stack of every output's symbols can be
         # ten times the pass that made it).
-        for g in (~beaten & self.valid).any(0).any(-1).nonzero().flatten().tolist():
-            left = ((~beaten[:, g]) & self.valid[g]).any(0).nonzero().flatten()  # (L,)
+        for g in (~beaten & valid).any(0).any(-1).nonzero().flatten().tolist():
+            left = ((~beaten[:, g]) & valid[g]).any(0).nonzero().flatten()  # (L,)
             tops, slot = top[:, g].unique(return_inverse=True)  # (U,), (B, k)
-            coeff = out.symbols_at(self.flat[g, torch.cat([left, tops])])  # (B, E, L + U)
+            coeff = out.symbols_at(flat[g, torch.cat([left, tops])])  # (B, E, L + U)
             symbols_g, picks = coeff[..., : len(left)], coeff[..., len(left) :]
             up_g = up[:, :, g, left]  # (B, q, L)
             for c in range(self.k):
@@ -433,7 +488,7 @@ class _Reach:
                 pick = picks.gather(2, slot[:, c].view(-1, 1, 1).expand(-1, picks.shape[1], 1))
                 share = l1_rows(symbols_g - pick)  # (B, L)
                 beaten[:, g, left] |= margin - share > self.tol_abs
-        return ~beaten & self.valid
+        return ~beaten & valid
 
     def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
         """``y (..., N)`` flat outputs → ``(..., G, S)``, ``fill`` where a group is short."""
