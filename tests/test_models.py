@@ -36,6 +36,31 @@ def test_backbone_sizes_and_shapes_match_the_paper(name, size, low, high):
         assert net(torch.zeros(2, 3, size, size)).shape == (2, 23, size, size)
 
 
+def test_a_large_inference_batch_runs_in_chunks_with_the_same_heatmaps(monkeypatch):
+    """Without gradients in eval mode a CPU batch goes ``CPU_CHUNK`` images at a time; the
+    heatmaps are those of one pass, and a training pass is one pass."""
+    from torch import nn
+
+    torch.manual_seed(0)
+    net = build_backbone("cnn_patch_smooth", 3).double().eval()
+    x = torch.rand(2 * net.CPU_CHUNK + 3, 3, 64, 64, dtype=torch.float64)
+    passes = []
+    monkeypatch.setattr(nn.Sequential, "forward", lambda self, x: passes.append(len(x)) or x[:, :3])
+    with torch.no_grad():
+        net(x)
+    assert passes == [net.CPU_CHUNK, net.CPU_CHUNK, 3]
+    passes.clear()
+    net.train()
+    net(x)
+    assert passes == [len(x)]
+    monkeypatch.undo()
+    net.eval()
+    with torch.no_grad():
+        chunked = net(x)
+        whole = nn.Sequential.forward(net, x)
+    torch.testing.assert_close(chunked, whole, rtol=1e-12, atol=1e-12)
+
+
 def test_resnet18_traces_for_the_verifier_with_its_residual_additions():
     net = build_backbone("resnet18", num_keypoints=4).eval()
     x = torch.rand(1, 3, 256, 256)

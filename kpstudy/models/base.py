@@ -10,10 +10,16 @@ from torch.fx._symbolic_trace import is_fx_symbolic_tracing
 class HeatmapBackbone(nn.Sequential):
     """``(B, 3, input_size, input_size)`` images → ``(B, K, heatmap_size, heatmap_size)``
     unnormalised heatmaps. ``forward`` names a wrong input shape or dtype (the check is
-    skipped while tracing for the verifier or an ONNX export)."""
+    skipped while tracing for the verifier or an ONNX export).
+
+    In eval mode without gradients a CPU batch runs :data:`CPU_CHUNK` images at a time:
+    the activations of a whole batch of witness images outgrow the caches (66 images
+    through the friendly CNN take 0.41 s at once, 0.17 s by sixteen)."""
 
     input_size: int
     heatmap_size: int
+    #: Images per pass of a CPU inference batch.
+    CPU_CHUNK = 16
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         tracing = is_fx_symbolic_tracing() or torch.jit.is_tracing()
@@ -24,4 +30,8 @@ class HeatmapBackbone(nn.Sequential):
                 raise ValueError(f"x: expected images of shape (B, 3, {s}, {s}), got {got}")
             if not x.is_floating_point():
                 raise ValueError(f"x: expected a floating-point tensor in [0, 1], got {x.dtype}")
+            chunked = not (self.training or torch.is_grad_enabled()) and x.device.type == "cpu"
+            if chunked and len(x) > self.CPU_CHUNK:
+                run = super().forward
+                return torch.cat([run(part) for part in x.split(self.CPU_CHUNK)])
         return super().forward(x)

@@ -167,7 +167,10 @@ def propagate(
     every node is a dense stack, and so is the output unless ``dense`` is False: then an
     output that holds its symbols in blocks keeps them (:attr:`Region.blocks`), for a
     caller that reads a few entries' symbols (:meth:`Region.symbols_at`) of an output
-    whose dense stack (symbols × outputs) would dwarf the pass itself. Past ``deadline``
+    whose dense stack (symbols × outputs) would dwarf the pass itself. A ``region`` that
+    holds symbols already (an earlier pass's output: the head of
+    :meth:`~kpstudy.verify.graph.Graph.split_affine_tail`) carries them on, numbering new
+    ones after its ``rows``; it needs ``zonotope``. Past ``deadline``
     (``time.perf_counter()`` seconds) it raises :class:`BoundsTimeout` between two layers:
     one node of a large zonotope can take minutes.
     """

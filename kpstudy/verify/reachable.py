@@ -17,6 +17,11 @@ node is split while it keeps, for some group, an index not yet reached; the sear
 when the possible and reached sets agree (``complete``) or the budget is spent. The loop
 is :func:`kpstudy.verify.search.branch_and_bound`, shared with
 :func:`~kpstudy.verify.bab.verify`.
+
+With the zonotope on a network that is affine after its last ReLU, a node is first
+bounded through that affine tail with its error symbols in the radius (cheap); it carries
+its symbols through the tail only where those bounds leave an index without a witness
+(``_Reach.undominated``). The sets and node counts are the same either way.
 """
 
 from __future__ import annotations
