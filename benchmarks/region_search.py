@@ -7,7 +7,9 @@ argmax head's own pixels: :func:`kpstudy.verify.reachable_argmax` on the backbon
 ``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
 ``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
 node, what stopped the search, whether the regions are complete (one witnessed pixel per
-possible one) and the mean possible pixels per keypoint.
+possible one) and the mean possible pixels per keypoint. With ``--baseline``, each search
+runs again with ``tail_first=False`` (every node's symbols through the whole network) and
+its seconds and nodes stand beside the first run's.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ def main(argv=None):
     ap.add_argument("--nodes", type=int, default=4, help="node budget per hull")
     ap.add_argument("--start-depth", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=600.0, help="a cap, seconds per hull")
+    ap.add_argument("--baseline", action="store_true", help="rerun each search without tail_first")
     args = ap.parse_args(argv)
     _, hulls = study_hulls(args.data, args.kind, args.m, args.overlapping, args.seed_index)
     out = {"kind": args.kind, "method": args.method, "nodes": args.nodes, "runs": []}
@@ -62,6 +65,17 @@ def main(argv=None):
             start = time.perf_counter()
             regions, _ = search_regions(net, hull, centers, 1, search)
             seconds = time.perf_counter() - start
+            baseline = {}
+            if args.baseline:
+                start = time.perf_counter()
+                whole, _ = search_regions(net, hull, centers, 1, dict(search, tail_first=False))
+                baseline = {
+                    "baseline_seconds": time.perf_counter() - start,
+                    "baseline_nodes": whole.nodes,
+                    "same_sets": all(
+                        a.tolist() == b.tolist() for a, b in zip(regions.possible, whole.possible)
+                    ),
+                }
             out["runs"].append(
                 {
                     "checkpoint": name,
@@ -72,6 +86,7 @@ def main(argv=None):
                     "stopped": regions.stats["stopped"],
                     "complete": regions.complete,
                     "mean_pixels": float(np.mean([len(p) for p in regions.possible])),
+                    **baseline,
                 }
             )
     return emit("region_search", out)

@@ -131,6 +131,7 @@ def reachable_argmax(
     focus=None,
     resume: Regions | None = None,
     witnesses=None,
+    tail_first: bool = True,
 ) -> Regions:
     """Sound sets of the indices each output group's argmax can take over ``input_set``.
 
@@ -181,6 +182,12 @@ def reachable_argmax(
         the concrete model and found that group's argmax at ``index`` (typically the
         images it sampled itself, passed with ``samples=0`` so that none is evaluated
         twice). They count as reached, before the search's own samples.
+    tail_first : bool
+        With ``'zonotope'`` on a network that is affine after its last ReLU, bound each
+        node there first with its symbols in the radius, and carry them through the
+        affine tail only where that leaves an index without a witness (module
+        docstring). False carries every node's symbols through the whole network: the
+        same sets and nodes, slower (a baseline).
 
     Returns
     -------
@@ -225,6 +232,8 @@ def reachable_argmax(
     search = _Reach(
         model, graph, input_set, sizes, method, min(candidates, S), tol, start + timeout
     )
+    if not tail_first:
+        search.tail = None
     if focus is not None:
         if len(focus) != G:
             raise ValueError(f"focus: expected {G} index arrays (one per group), got {len(focus)}")
