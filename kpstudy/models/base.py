@@ -13,8 +13,7 @@ class HeatmapBackbone(nn.Sequential):
     skipped while tracing for the verifier or an ONNX export).
 
     In eval mode without gradients a CPU batch runs :data:`CPU_CHUNK` images at a time:
-    the activations of a whole batch of witness images outgrow the caches (66 images
-    through the friendly CNN take 0.41 s at once, 0.17 s by sixteen)."""
+    a whole batch's activations outgrow the caches (docs/findings.md, Session 40)."""
 
     input_size: int
     heatmap_size: int

@@ -108,11 +108,9 @@ class Profile:
         friendly CNN's recipe keeps its own).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
-    workers : local processes per campaign, each with ``cpu_count // workers`` threads.
-        The quick profile runs one, so every hull has both cores of the 2-core machine
-        and the tables' per-hull times are 2-core times (two workers of one thread each
-        finish about as soon, since the longest hull comes last, but report each hull at
-        1.7× its 2-core time).
+    workers : local processes per campaign, each with ``cpu_count // workers`` threads
+        (quick: one, so that every hull has both cores and the tables' per-hull times
+        are 2-core times).
     """
 
     name: str

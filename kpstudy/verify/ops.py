@@ -19,6 +19,8 @@ may mix the batch.
 
 from __future__ import annotations
 
+import copy
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -90,8 +92,7 @@ def output_channels(op: Op, channels: torch.Tensor) -> Op | None:
     m = op.m
     transposed = isinstance(op, ConvTranspose)
     weight = m.weight.detach()[:, channels] if transposed else m.weight.detach()[channels]
-    module = type(m).__new__(type(m))  # the same geometry, its own weight, no bias
-    module.__dict__.update(m.__dict__)
+    module = copy.copy(m)  # the same geometry, its own weight, no bias
     module._parameters = {"weight": nn.Parameter(weight, requires_grad=False), "bias": None}
     module.out_channels = len(channels)
     return (_ConvTransposeChannels if transposed else _ConvChannels)(module, op, channels)
