@@ -132,7 +132,7 @@ class Region:
         """The regions ``rows`` (bool ``(B,)`` or indices) of the batch."""
         blocks = self.blocks
         if blocks is not None:
-            blocks = [symbols.Block(b.coeff[rows], b.start, b.y, b.x) for b in blocks]
+            blocks = [symbols.Block(b.coeff[rows], b.start, b.y[rows], b.x[rows]) for b in blocks]
         return Region(self.mid[rows], self.rad[rows], self.domain, blocks, self.rows)
 
     def to_interval(self) -> Region:

@@ -1,22 +1,28 @@
-"""A zonotope's error symbols stored by where they reach (spatial blocks).
+"""A zonotope's error symbols, each on the window of the activation it reaches.
 
 A DeepZ error symbol (:mod:`kpstudy.verify.bounds`, method ``'zonotope'``) is made at one
 unstable ReLU neuron, and each later convolution widens its reach by one kernel: through
 most of a convolutional network a symbol touches a small window of each activation,
 while a dense stack ``(B, E, C, H, W)`` pays for the whole activation per symbol. Here
-the symbols made in one tile of one ReLU share a :class:`Block`: their coefficients
-``(B, r, C, h, w)`` on a window of a ``(C, H, W)`` activation, zero outside it.
-Convolutions, transposed convolutions, per-channel maps and channel slices map blocks to
-blocks (:func:`apply`), sums and channel concatenations merge them (:func:`combine`);
-the proxy's cell pool reads each block into the dense stack of its cells
-(:func:`cell_pool`), so the full-resolution dense stack is never formed; any other
-operator gets the dense stack (:func:`dense`). Within one value a symbol lives
-in one block only, so ``Σ_e |coefficient|`` (:func:`reach`) is exact.
+the symbols made at one ReLU share a :class:`Block`: each symbol's coefficients on its
+own ``(C, h, w)`` window of a ``(C, H, W)`` activation (zero outside it), the windows of
+one size, their corners per symbol. A new symbol's window is its neuron (``1 × 1``); a
+convolution maps the whole block in one call, each window to the outputs it reaches, so
+a symbol costs its own reach and no more. Convolutions, transposed convolutions,
+per-channel maps and channel slices map blocks to blocks (:func:`apply`), sums and
+channel concatenations merge them (:func:`combine`); the proxy's cell pool reads each
+block into the dense stack of its cells (:func:`cell_pool`), so the full-resolution
+dense stack is never formed; any other operator gets the dense stack (:func:`dense`).
+Within one value a symbol lives in one block only, so ``Σ_e |coefficient|``
+(:func:`reach`) is exact.
+
+Windows lie inside their activation: where a window would cross the border its corner
+moves in and its data shifts with it (:func:`_inside`), which also drops what lies
+outside, as a convolution's zero padding requires.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -24,28 +30,35 @@ import torch.nn.functional as F
 
 from kpstudy.verify import ops
 
-#: Tiles per side in which one ReLU's new symbols are grouped.
-TILES = 4
-
 
 @dataclass
 class Block:
     """Symbols ``[start, start + r)`` (rows of the dense stack) of a ``(C, H, W)`` value:
-    coefficients ``coeff (B, r, C, h, w)`` on rows ``y … y + h`` and columns
-    ``x … x + w``, zero elsewhere."""
+    symbol ``e`` of region ``b`` has coefficients ``coeff[b, e] (C, h, w)`` on rows
+    ``y[b, e] … y[b, e] + h`` and columns ``x[b, e] … x[b, e] + w``, zero elsewhere
+    (``y, x (B, r)`` int64; every window inside the value)."""
 
     coeff: torch.Tensor
     start: int
-    y: int
-    x: int
+    y: torch.Tensor
+    x: torch.Tensor
 
     @property
     def rows(self) -> int:
         return self.coeff.shape[1]
 
-    def window(self) -> tuple[slice, slice]:
-        h, w = self.coeff.shape[-2:]
-        return slice(self.y, self.y + h), slice(self.x, self.x + w)
+    def flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``coeff (B·r, C, h, w)`` and the corners ``y, x (B·r,)``."""
+        B, r = self.coeff.shape[:2]
+        return (
+            self.coeff.reshape(B * r, *self.coeff.shape[2:]),
+            self.y.reshape(-1),
+            self.x.reshape(-1),
+        )
+
+    @classmethod
+    def unflat(cls, coeff, start, y, x, B):
+        return cls(coeff.reshape(B, -1, *coeff.shape[1:]), start, y.view(B, -1), x.view(B, -1))
 
 
 def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
@@ -109,39 +122,117 @@ def assemble(shape, like: torch.Tensor, parts) -> torch.Tensor:
     return _Assemble.apply(tuple(shape), index, *tensors)
 
 
+def _shift(t: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor, size) -> torch.Tensor:
+    """``(N, C, h, w) → (N, C, *size)``: ``out[e, :, i, j] = t[e, :, i + dy[e], j + dx[e]]``,
+    zero where that lies outside ``t``."""
+    N, C, h, w = t.shape
+    H, W = size
+    if (H, W) == (h, w) and not (dy.any() or dx.any()):
+        return t
+    if N == 0:
+        return t.new_zeros(N, C, H, W)
+    if int(dy.min()) == int(dy.max()) and int(dx.min()) == int(dx.max()):  # one shift for all
+        oy, ox = int(dy[0]), int(dx[0])
+        return F.pad(t, (-ox, W - w + ox, -oy, H - h + oy))
+    top, left = max(0, -int(dy.min())), max(0, -int(dx.min()))
+    bottom, right = max(0, int(dy.max()) + H - h), max(0, int(dx.max()) + W - w)
+    padded = F.pad(t, (left, right, top, bottom)) if top + bottom + left + right else t
+    iy = (dy + top)[:, None] + torch.arange(H)  # (N, H)
+    ix = (dx + left)[:, None] + torch.arange(W)  # (N, W)
+    index = (iy[:, :, None] * (w + left + right) + ix[:, None, :]).view(N, 1, H * W)
+    return padded.flatten(2).gather(2, index.expand(N, C, H * W)).view(N, C, H, W)
+
+
+def _inside(t: torch.Tensor, y: torch.Tensor, x: torch.Tensor, size):
+    """Windows ``t (N, C, h, w)`` at corners ``y, x (N,)`` (any, even outside) moved inside
+    a ``size`` map: at most its size, corners clamped, data shifted (what lay outside
+    dropped). Returns the windows and their corners."""
+    H, W = size
+    h, w = min(t.shape[2], H), min(t.shape[3], W)
+    cy, cx = y.clamp(0, H - h), x.clamp(0, W - w)
+    return _shift(t, cy - y, cx - x, (h, w)), cy, cx
+
+
+def _windows(s: torch.Tensor, y: torch.Tensor, x: torch.Tensor, h: int, w: int):
+    """``s (B, C, H, W)`` read on the windows ``(h, w)`` at ``y, x (B, r)``: ``(B, r, C, h, w)``."""
+    B, C, H, W = s.shape
+    r = y.shape[1]
+    iy = y[..., None] + torch.arange(h)  # (B, r, h)
+    ix = x[..., None] + torch.arange(w)
+    index = (iy[..., :, None] * W + ix[..., None, :]).view(B, 1, r * h * w)
+    out = s.flatten(2).gather(2, index.expand(B, C, r * h * w))
+    return out.view(B, C, r, h, w).transpose(1, 2)
+
+
+def _placed(b: Block, size) -> torch.Tensor:
+    """The block's symbols on the whole ``size (H, W)`` map: ``(B, r, C, H, W)``."""
+    B, r, C, h, w = b.coeff.shape
+    H, W = size
+    iy = b.y[..., None] + torch.arange(h)
+    ix = b.x[..., None] + torch.arange(w)
+    index = (iy[..., :, None] * W + ix[..., None, :]).view(B, r, 1, h * w)
+    out = b.coeff.new_zeros(B, r, C, H * W)
+    out = out.scatter(3, index.expand(B, r, C, h * w), b.coeff.reshape(B, r, C, h * w))
+    return out.view(B, r, C, H, W)
+
+
+#: Window area up to which :func:`reach` adds one window offset at a time.
+REACH_OFFSETS = 64
+
+
 def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
-    """``Σ_e |coefficient of symbol e|`` per entry, ``(B, C, H, W)`` like ``like``."""
-    return assemble(
-        like.shape,
-        like,
-        [((slice(None), slice(None), *b.window()), l1_rows(b.coeff)) for b in blocks],
-    )
+    """``Σ_e |coefficient of symbol e|`` per entry, ``(B, C, H, W)`` like ``like``, added
+    up on a channel-last map (:meth:`~torch.Tensor.index_add_`): a small window one
+    offset at a time (every symbol's ``C`` values there at once), a large one entry by
+    entry in one call."""
+    B, C, H, W = like.shape
+    out = like.new_zeros(B * H * W, C)
+    for b in blocks:
+        r, h, w = b.rows, *b.coeff.shape[-2:]
+        at = (torch.arange(B)[:, None] * (H * W) + b.y * W + b.x).reshape(-1)  # (B·r,)
+        size = b.coeff.abs()
+        if h * w <= REACH_OFFSETS:
+            size = size.permute(3, 4, 0, 1, 2).contiguous()  # (h, w, B, r, C)
+            for i in range(h):
+                for j in range(w):
+                    out.index_add_(0, at + (i * W + j), size[i, j].view(B * r, C))
+        else:
+            offset = (torch.arange(h)[:, None] * W + torch.arange(w)).reshape(-1)  # (h·w,)
+            index = (at[:, None] + offset) * C  # (B·r, h·w), channel 0
+            index = index[:, None, :] + torch.arange(C)[:, None]  # (B·r, C, h·w)
+            out.view(-1).index_add_(0, index.reshape(-1), size.reshape(-1))
+    return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
 
 def gather(blocks: list[Block], rows: int, start: int, like: torch.Tensor, index: torch.Tensor):
     """The symbols' coefficients ``(B, rows, n)`` on the flat entries ``index (n,)`` of a
     value held as ``like (B, q, C, H, W)`` and ``blocks``, symbol ``e`` in row
     ``e − start`` (the dense stack's rows past its ``start`` affine ones, without forming
-    it); ``rows`` is the number of symbols in all."""
+    it); ``rows`` is the number of symbols in all. Each window is read on the channels
+    of ``index`` alone, through a map from entries to their place in ``index``."""
+    B = like.shape[0]
     H, W = like.shape[-2:]
-    c, y, x = index // (H * W), index // W % H, index % W
-    out = like.new_zeros(like.shape[0], rows, len(index))
+    entries, back = index.unique(return_inverse=True)
+    n = len(entries)
+    channels, channel_of = (entries // (H * W)).unique(return_inverse=True)
+    lookup = torch.full((len(channels), H * W), n, dtype=torch.long)  # n: no entry
+    lookup[channel_of, entries % (H * W)] = torch.arange(n)
+    lookup = lookup.view(1, len(channels), H, W).expand(B, -1, -1, -1)
+    out = like.new_zeros(B, rows, n + 1)
     for b in blocks:
         h, w = b.coeff.shape[-2:]
-        inside = ((y >= b.y) & (y < b.y + h) & (x >= b.x) & (x < b.x + w)).nonzero().flatten()
-        if len(inside) == 0:
-            continue
-        local = (c[inside] * h + y[inside] - b.y) * w + x[inside] - b.x
+        at = _windows(lookup, b.y, b.x, h, w).reshape(B, b.rows, -1)
+        values = b.coeff[:, :, channels].reshape(B, b.rows, -1)
         r0 = b.start - start
-        out[:, r0 : r0 + b.rows, inside] = b.coeff.flatten(2)[:, :, local]
-    return out
+        out[:, r0 : r0 + b.rows] = out[:, r0 : r0 + b.rows].scatter(2, at, values)
+    return out[..., back]
 
 
 def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row."""
     parts = [((slice(None), slice(0, mid.shape[1])), mid)]
     parts += [
-        ((slice(None), slice(b.start, b.start + b.rows), slice(None), *b.window()), b.coeff)
+        ((slice(None), slice(b.start, b.start + b.rows)), _placed(b, mid.shape[-2:]))
         for b in blocks
     ]
     return assemble((mid.shape[0], rows, *mid.shape[2:]), mid, parts)
@@ -151,9 +242,9 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
     """The dense stack ``(B, rows, 1, n_v, n_h)`` of the cell pool ``op`` of a value held
     as ``θ`` rows ``mid (B, q, 1, H, W)`` and symbol ``blocks``.
 
-    A cell is a ``k_v × k_h`` window of the padded map, so each block is padded to whole
-    cells (a few pixels) and pooled on its own; the ``(B, rows, 1, H, W)`` stack that
-    :func:`dense` would build and pad is never formed."""
+    A cell is a ``k_v × k_h`` window of the padded map, so each symbol's window is
+    widened to whole cells (a few pixels) and pooled on its own; the
+    ``(B, rows, 1, H, W)`` stack that :func:`dense` would build and pad is never formed."""
     B, q = mid.shape[:2]
     parts = [
         (
@@ -163,122 +254,126 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
     ]
     (kv, kh), (left, _, top, _) = op.kernel_size, op.pad
     scale = op.scale.to(mid.dtype)
-    unit = bool((scale == 1).all())
     for b in blocks:
-        r, (h, w) = b.rows, b.coeff.shape[-2:]
-        y, x = b.y + top, b.x + left  # the window in the padded map
-        c0, c1, d0, d1 = y // kv, -(-(y + h) // kv), x // kh, -(-(x + w) // kh)
-        pad = (x - d0 * kh, d1 * kh - x - w, y - c0 * kv, c1 * kv - y - h)
-        # The stride-1 proxy's one-pixel cells of scale 1 pass as they are.
-        pooled = b.coeff.reshape(B * r, 1, h, w)
-        if any(pad):
-            pooled = F.pad(pooled, pad)
+        coeff, y, x = b.flat()
+        h, w = coeff.shape[-2:]
+        y, x = y + top, x + left  # the windows in the padded map
+        c0, d0 = y // kv, x // kh  # their first cells
+        nv = int(((y + h + kv - 1) // kv - c0).max())
+        nh = int(((x + w + kh - 1) // kh - d0).max())
+        cells = _shift(coeff, c0 * kv - y, d0 * kh - x, (nv * kv, nh * kh))
         if (kv, kh) != (1, 1):
-            pooled = F.avg_pool2d(pooled, (kv, kh))
-        if not unit:
-            pooled = pooled * scale[c0:c1, d0:d1]
-        window = (
-            slice(None),
-            slice(b.start, b.start + r),
-            slice(None),
-            slice(c0, c1),
-            slice(d0, d1),
-        )
-        parts.append((window, pooled.reshape(B, r, 1, c1 - c0, d1 - d0)))
+            cells = F.avg_pool2d(cells, (kv, kh))
+        cells, c0, d0 = _inside(cells, c0, d0, (op.n_v, op.n_h))
+        pooled = _placed(Block.unflat(cells, b.start, c0, d0, B), (op.n_v, op.n_h))
+        parts.append(((slice(None), slice(b.start, b.start + b.rows)), pooled * scale))
     return assemble((B, rows, 1, op.n_v, op.n_h), mid, parts)
 
 
 def make(mu: torch.Tensor, start: int) -> list[Block]:
     """New symbols for the nonzero entries of ``mu (B, C, H, W)`` (one each, coefficient
-    ``μ``), numbered from ``start``, grouped by tile; a tile's rows are its largest count
-    over the batch (shorter regions get zero rows)."""
+    ``μ`` on its own neuron), numbered from ``start`` in the order of the flat entries:
+    one block whose rows are the batch's largest count (shorter regions get zero rows)."""
     B, C, H, W = mu.shape
-    th, tw = math.ceil(H / TILES), math.ceil(W / TILES)
-    blocks = []
-    for y in range(0, H, th):
-        for x in range(0, W, tw):
-            tile = mu[:, :, y : y + th, x : x + tw]
-            nonzero = tile > 0
-            r = int(nonzero.flatten(1).sum(1).max())
-            if r == 0:
-                continue
-            rows, cols = nonzero.any(0).any(0).nonzero(as_tuple=True)  # the window
-            tile = tile[:, :, rows.min() : rows.max() + 1, cols.min() : cols.max() + 1]
-            flat = tile.reshape(B, -1)
-            order = (flat > 0).to(torch.uint8).argsort(dim=1, descending=True, stable=True)[:, :r]
-            coeff = flat.new_zeros(B, r, flat.shape[1])
-            coeff.scatter_(2, order[:, :, None], flat.gather(1, order)[:, :, None])
-            blocks.append(
-                Block(
-                    coeff.view(B, r, *tile.shape[1:]),
-                    start,
-                    y + int(rows.min()),
-                    x + int(cols.min()),
-                )
-            )
-            start += r
-    return blocks
+    flat = mu.reshape(B, -1)
+    region, entry = (flat > 0).nonzero(as_tuple=True)  # by region, then entry
+    if len(entry) == 0:
+        return []
+    count = torch.bincount(region, minlength=B)
+    row = torch.arange(len(entry)) - (count.cumsum(0) - count)[region]
+    r = int(count.max())
+    order = torch.zeros(B, r, dtype=torch.long)
+    order[region, row] = entry
+    coeff = flat.new_zeros(B, r, C)
+    coeff = coeff.index_put((region, row, entry // (H * W)), flat[region, entry])
+    return [Block(coeff.view(B, r, C, 1, 1), start, order // W % H, order % W)]
 
 
 def scale(blocks: list[Block], s: torch.Tensor) -> list[Block]:
-    """Each block times ``s (B, C, H, W)``, its window shrunk to where ``s`` is nonzero."""
+    """Each block times ``s (B, C, H, W)``; a block's windows shrink to the largest extent
+    where a symbol stays nonzero, a block that is zero everywhere goes."""
     out = []
+    H, W = s.shape[-2:]
     for b in blocks:
-        sw = s[(slice(None), slice(None), *b.window())]
-        rows, cols = (sw != 0).any(0).any(0).nonzero(as_tuple=True)
-        if len(rows) == 0:
+        B, r, C, h, w = b.coeff.shape
+        coeff = b.coeff * _windows(s, b.y, b.x, h, w)
+        live = (coeff != 0).any(2)  # (B, r, h, w)
+        rows_live, cols_live = live.any(-1), live.any(-2)  # (B, r, h), (B, r, w)
+        if not rows_live.any():
             continue
-        r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
-        coeff = b.coeff[..., r0:r1, c0:c1] * sw[:, None, :, r0:r1, c0:c1]
-        out.append(Block(coeff, b.start, b.y + r0, b.x + c0))
+        first_y, last_y = _extent(rows_live)
+        first_x, last_x = _extent(cols_live)
+        hh, ww = int((last_y - first_y).max()) + 1, int((last_x - first_x).max()) + 1
+        y, x = b.y + first_y, b.x + first_x
+        if (hh, ww) != (h, w):
+            y, x = y.clamp(max=H - hh), x.clamp(max=W - ww)
+            flat = _shift(
+                coeff.reshape(B * r, C, h, w),
+                (y - b.y).reshape(-1),
+                (x - b.x).reshape(-1),
+                (hh, ww),
+            )
+            coeff = flat.view(B, r, C, hh, ww)
+        else:
+            y, x = b.y, b.x
+        out.append(Block(coeff, b.start, y, x))
     return out
+
+
+def _extent(live: torch.Tensor):
+    """First and last true index along the last axis of ``live (…, n)`` (0, 0 where none)."""
+    n = live.shape[-1]
+    index = torch.arange(n)
+    first = torch.where(live, index, n).amin(-1)
+    last = torch.where(live, index, -1).amax(-1)
+    none = last < 0
+    return first.masked_fill(none, 0), last.masked_fill(none, 0)
 
 
 def apply(op: ops.Op, blocks: list[Block], out_shape) -> list[Block]:
     """The blocks of ``op.linear(value)`` for a one-input local ``op``."""
     out = []
     for b in blocks:
-        B, r = b.coeff.shape[:2]
-        x = b.coeff.reshape(B * r, *b.coeff.shape[2:])
+        B = b.coeff.shape[0]
+        x, y0, x0 = b.flat()
         if isinstance(op, ops.Conv):
-            y, (oy, ox) = _conv(op.m, x, (b.y, b.x), out_shape[1:])
+            y, oy, ox = _conv(op.m, x, y0, x0, out_shape[1:])
         elif isinstance(op, ops.ConvTranspose):
-            y, (oy, ox) = _conv_transpose(op.m, x, (b.y, b.x), out_shape[1:])
-        else:  # per-channel maps and channel slices keep the window
-            y, (oy, ox) = op.linear(x), (b.y, b.x)
-        if y is not None and y.numel() > 0:
-            out.append(Block(y.reshape(B, r, *y.shape[1:]), b.start, oy, ox))
+            y, oy, ox = _conv_transpose(op.m, x, y0, x0, out_shape[1:])
+        else:  # per-channel maps and channel slices keep the windows
+            y, oy, ox = op.linear(x), y0, x0
+        if y.numel() > 0:
+            out.append(Block.unflat(y, b.start, oy, ox, B))
     return out
 
 
 def combine(op: ops.Op, inputs: list[list[Block]], in_shapes) -> list[Block]:
-    """The blocks of a sum or channel concatenation: a symbol's blocks from the inputs
-    are merged on the union of their windows."""
+    """The blocks of a sum or channel concatenation: a symbol's windows from the inputs
+    are merged on their union."""
     starts = sorted({b.start for blocks in inputs for b in blocks})
     by_start = [{b.start: b for b in blocks} for blocks in inputs]
+    H, W = in_shapes[0][1:]
     out = []
     for start in starts:
         present = [bs.get(start) for bs in by_start]
         found = [b for b in present if b is not None]
         some = found[0]
-        y0, x0 = min(b.y for b in found), min(b.x for b in found)
-        y1 = max(b.y + b.coeff.shape[-2] for b in found)
-        x1 = max(b.x + b.coeff.shape[-1] for b in found)
+        B, r = some.coeff.shape[:2]
+        y0 = torch.stack([b.y for b in found]).amin(0)
+        x0 = torch.stack([b.x for b in found]).amin(0)
+        y1 = torch.stack([b.y + b.coeff.shape[-2] for b in found]).amax(0)
+        x1 = torch.stack([b.x + b.coeff.shape[-1] for b in found]).amax(0)
+        hh, ww = int((y1 - y0).max()), int((x1 - x0).max())
+        y0, x0 = y0.clamp(max=H - hh), x0.clamp(max=W - ww)
         parts = []
         for b, shape in zip(present, in_shapes):
             if b is None:
-                parts.append(
-                    some.coeff.new_zeros(*some.coeff.shape[:2], shape[0], y1 - y0, x1 - x0)
-                )
+                parts.append(some.coeff.new_zeros(B * r, shape[0], hh, ww))
                 continue
-            h, w = b.coeff.shape[-2:]
-            pad = (b.x - x0, x1 - b.x - w, b.y - y0, y1 - b.y - h)
-            parts.append(F.pad(b.coeff, pad) if any(pad) else b.coeff)
-        if isinstance(op, ops.Add):
-            coeff = parts[0] + parts[1]
-        else:
-            coeff = torch.cat(parts, 2)
-        out.append(Block(coeff, start, y0, x0))
+            coeff, y, x = b.flat()
+            parts.append(_shift(coeff, y0.reshape(-1) - y, x0.reshape(-1) - x, (hh, ww)))
+        coeff = parts[0] + parts[1] if isinstance(op, ops.Add) else torch.cat(parts, 1)
+        out.append(Block.unflat(coeff, start, y0.reshape(-1), x0.reshape(-1), B))
     return out
 
 
@@ -286,35 +381,30 @@ def _pair(v):
     return (v, v) if isinstance(v, int) else tuple(v)
 
 
-def _conv(m, x, corner, out_hw):
-    """``conv2d`` (no bias) of a window ``x (N, C, h, w)`` at ``corner``: the outputs it
-    reaches within ``out_hw`` and their corner."""
+def _conv(m, x, y, x0, out_hw):
+    """``conv2d`` (no bias) of windows ``x (N, C, h, w)`` at corners ``y, x0 (N,)``: each
+    window's outputs (those it reaches, placed inside ``out_hw``) and their corners."""
     k, s, p, d = (_pair(v) for v in (m.kernel_size, m.stride, m.padding, m.dilation))
-    lo, pads = [], []
-    for a in range(2):
-        start, size = corner[a], x.shape[2 + a]
-        o0 = max(0, -((d[a] * (k[a] - 1) - p[a] - start) // s[a]))  # ceil division
-        o1 = min(out_hw[a], (start + size - 1 + p[a]) // s[a] + 1)
-        if o1 <= o0:
-            return None, (0, 0)
-        need0 = o0 * s[a] - p[a]
-        need1 = (o1 - 1) * s[a] - p[a] + d[a] * (k[a] - 1) + 1
-        lo.append(o0)
-        pads.append((start - need0, need1 - start - size))
-    x = F.pad(x, (*pads[1], *pads[0]))
-    return F.conv2d(x, m.weight, None, s, 0, d, m.groups), tuple(lo)
+    first, lead, length = [], [], []
+    for a, start in enumerate((y, x0)):
+        size, span = x.shape[2 + a], d[a] * (k[a] - 1)
+        o0 = -((span - p[a] - start) // s[a])  # the first output reached (ceil division)
+        o1 = (start + size - 1 + p[a]) // s[a]  # the last
+        ahead = start - (o0 * s[a] - p[a])  # input entries before the window, ≥ 0
+        n = int((o1 - o0).max()) + 1
+        first.append(o0)
+        lead.append(ahead)
+        length.append(max((n - 1) * s[a] + span + 1, int((ahead + size).max())))
+    if s == (1, 1):  # every window needs its kernel's span on each side
+        out = F.conv2d(x, m.weight, None, s, (d[0] * (k[0] - 1), d[1] * (k[1] - 1)), d, m.groups)
+    else:
+        x = _shift(x, -lead[0], -lead[1], length)
+        out = F.conv2d(x, m.weight, None, s, 0, d, m.groups)
+    return _inside(out, first[0], first[1], out_hw)
 
 
-def _conv_transpose(m, x, corner, out_hw):
-    """``conv_transpose2d`` (no bias) of a window at ``corner``, cropped to ``out_hw``."""
+def _conv_transpose(m, x, y, x0, out_hw):
+    """``conv_transpose2d`` (no bias) of windows at corners ``y, x0``, placed inside ``out_hw``."""
     k, s, p, d = (_pair(v) for v in (m.kernel_size, m.stride, m.padding, m.dilation))
-    y = F.conv_transpose2d(x, m.weight, None, s, 0, 0, m.groups, d)
-    lo, crop = [], []
-    for a in range(2):
-        o0 = corner[a] * s[a] - p[a]  # where the window's first output lands
-        c0, c1 = max(0, -o0), min(y.shape[2 + a], out_hw[a] - o0)
-        if c1 <= c0:
-            return None, (0, 0)
-        lo.append(o0 + c0)
-        crop.append(slice(c0, c1))
-    return y[:, :, crop[0], crop[1]], tuple(lo)
+    out = F.conv_transpose2d(x, m.weight, None, s, 0, 0, m.groups, d)
+    return _inside(out, y * s[0] - p[0], x0 * s[1] - p[1], out_hw)
