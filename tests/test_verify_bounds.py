@@ -292,7 +292,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
         blocks, _ = B.propagate(graph, region, zonotope=True)
         monkeypatch.setattr(symbols, "is_local", lambda *args: False)
         dense, _ = B.propagate(graph, region, zonotope=True)
-    # The same symbols (blocks number them by tile, padded to the batch): every linear
+    # The same symbols (blocks number them per ReLU, padded to the batch): every linear
     # function of the output has the same bounds, margins included.
     q, outputs = region.mid.shape[1], y.shape[1]
     g = torch.Generator().manual_seed(seed)
@@ -415,12 +415,18 @@ def test_a_fusion_that_would_cost_more_is_not_made():
     assert any(isinstance(n.op, PatchConvTranspose) for n in graph.nodes)  # the cheap pair
 
 
+@pytest.mark.parametrize("offsets", [64, 0])
 @pytest.mark.parametrize("seed", range(3))
-def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed):
+def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed, offsets, monkeypatch):
     """propagate(dense=False): the output's symbol reach and its symbols on chosen entries
-    (Region.reach, Region.symbols_at) are the dense stack's."""
+    (Region.reach, Region.symbols_at; entries repeated and on several channels) are the
+    dense stack's, whether the reach adds the windows offset by offset or entry by entry
+    (symbols.REACH_OFFSETS)."""
     from kpstudy.verify import bounds as B
+    from kpstudy.verify import symbols
     from kpstudy.verify.graph import trace
+
+    monkeypatch.setattr(symbols, "REACH_OFFSETS", offsets)
 
     net = PatchNet(seed).double()
     hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5, dtype=torch.float64))
@@ -433,6 +439,7 @@ def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed):
     q = kept.rad.shape[1]
     torch.testing.assert_close(kept.reach(), dense.reach())
     index = torch.randperm(3 * 16 * 16, generator=torch.Generator().manual_seed(seed))[:50]
+    index = torch.cat([index, index[:7]])
     torch.testing.assert_close(kept.symbols_at(index), dense.mid[:, q:].flatten(2)[..., index])
     torch.testing.assert_close(kept.symbols_at(index), dense.symbols_at(index))
     for a, b in zip(kept.bounds(), dense.bounds()):

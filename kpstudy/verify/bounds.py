@@ -30,9 +30,10 @@ Methods
     the following layers instead of growing as ``|W|·radius``. On the trained CNN this
     is what keeps bounds near the sampled range (``'forward'`` grows ~10× per layer); its
     cost is one pass of every layer per symbol (thousands of symbols on the CNN), on the
-    window the symbol reaches: symbols made in one tile of a ReLU share a spatial block
-    (:mod:`kpstudy.verify.symbols`) until an operator that mixes space (a pool, a flatten,
-    a linear layer) needs the dense stack; the proxy's cell pool reads the blocks itself.
+    window the symbol reaches: each symbol keeps its own window, the symbols of one ReLU
+    in one block (:mod:`kpstudy.verify.symbols`), until an operator that mixes space (a
+    pool, a flatten, a linear layer) needs the dense stack; the proxy's cell pool reads
+    the blocks itself.
     Symbols are numbered across branches, so two ReLU branches never share one. Past
     :func:`symbol_budget` symbols the smallest further errors go into the radius instead
     (sound, looser).

@@ -279,7 +279,7 @@ class ReLU(Rules):
 
     def _blocks(self, p, i, mid, rad, blocks):
         """DeepZ on a value whose symbols are in blocks (:mod:`symbols`): the old symbols
-        are scaled by the slopes, the new ones grouped by tile."""
+        are scaled by the slopes, the new ones make one block."""
         reach = symbols.reach(blocks, mid[:, 0])
         l = domain_min(mid - rad, p.domain) - reach
         u = -domain_min(-mid - rad, p.domain) + reach
@@ -287,17 +287,15 @@ class ReLU(Rules):
         B = mid.shape[0]
         flat_mu = mu.reshape(B, -1)
         left = max(0, p.max_generators - (p.made - p.q))
-        k = min(int((flat_mu > 0).sum(1).max()), left)
-        while True:  # the k largest μ of each region, fewer if the tiles' rows pass the budget
+        most = int((flat_mu > 0).sum(1).max())
+        k, kept = min(most, left), flat_mu
+        if k < most:  # the k largest μ of each region
             kept = torch.zeros_like(flat_mu)
             if k > 0:
                 top = flat_mu.topk(k, 1)
-                kept.scatter_(1, top.indices, top.values)
-            new = symbols.make(kept.view_as(mu), p.made)
-            rows = sum(b.rows for b in new)
-            if rows <= left:
-                break
-            k = min(k - 1, k * left // rows)
+                kept = kept.scatter(1, top.indices, top.values)
+        new = symbols.make(kept.view_as(mu), p.made)
+        rows = sum(b.rows for b in new)
         new_mid = mid * s[:, None]
         new_mid[:, 0] += mu
         new_rad = s[:, None] * rad
