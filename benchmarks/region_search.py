@@ -1,15 +1,16 @@
 """The pose-bound method's region search, model beside model: seconds per node.
 
-For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m`` and
-overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
-``bound_profile``), the search :func:`kpstudy.certify.pose_bound` makes at stride 1 (the
-argmax head's own pixels: :func:`kpstudy.verify.reachable_argmax` on the backbone) with
-``--method`` bounds, ``--start-depth`` splits before the first bounds and a budget of
-``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds, nodes, seconds per
-node, what stopped the search, whether the regions are complete (one witnessed pixel per
-possible one) and the mean possible pixels per keypoint. With ``--baseline``, each search
-runs again with ``tail_first=False`` (every node's symbols through the whole network) and
-its seconds and nodes stand beside the first run's.
+For object (or block) hulls of the study's perturbation sets (``--data``; per ``--m``
+and overlap, the first seed image from ``--seed-index`` with ``m`` such images, as in
+``bound_profile``) or the brightness or contrast hull of that seed image (``--level``;
+``--nodes 1`` times a root proof), the search :func:`kpstudy.certify.pose_bound` makes
+at stride 1 (the argmax head's own pixels: :func:`kpstudy.verify.reachable_argmax` on
+the backbone) with ``--method`` bounds, ``--start-depth`` splits before the first bounds
+and a budget of ``--nodes``. Prints one JSON line: per checkpoint × hull, the seconds,
+nodes, seconds per node, what stopped the search, whether the regions are complete (one
+witnessed pixel per possible one) and the mean possible pixels per keypoint. With
+``--baseline``, each search runs again with ``tail_first=False`` (every node's symbols
+through the whole network) and its seconds and nodes stand beside the first run's.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--checkpoint", type=_checkpoint, nargs="+", required=True)
     ap.add_argument("--data", type=Path, required=True, help="a dataset with perturbation sets")
-    ap.add_argument("--kind", default="objects", help="objects or blocks")
+    ap.add_argument("--kind", default="objects", help="objects, blocks, brightness or contrast")
+    ap.add_argument("--level", type=float, help="brightness or contrast level (the first)")
     ap.add_argument("--m", type=int, nargs="+", default=[2, 3, 4])
     ap.add_argument("--overlapping", choices=("no", "yes", "both"), default="no")
     ap.add_argument("--seed-index", type=int, default=0)
@@ -43,8 +45,11 @@ def main(argv=None):
     ap.add_argument("--timeout", type=float, default=600.0, help="a cap, seconds per hull")
     ap.add_argument("--baseline", action="store_true", help="rerun each search without tail_first")
     args = ap.parse_args(argv)
-    _, hulls = study_hulls(args.data, args.kind, args.m, args.overlapping, args.seed_index)
-    out = {"kind": args.kind, "method": args.method, "nodes": args.nodes, "runs": []}
+    level, hulls = study_hulls(
+        args.data, args.kind, args.m, args.overlapping, args.seed_index, args.level
+    )
+    out = {"kind": args.kind, "level": level, "method": args.method, "nodes": args.nodes}
+    out["runs"] = []
     for name, path in args.checkpoint:
         net, _ = load_checkpoint(path)
         net.eval()
