@@ -153,13 +153,19 @@ def _inside(t: torch.Tensor, y: torch.Tensor, x: torch.Tensor, size):
     return _shift(t, cy - y, cx - x, (h, w)), cy, cx
 
 
+def _window_index(y: torch.Tensor, x: torch.Tensor, h: int, w: int, W: int) -> torch.Tensor:
+    """Flat indices ``(B, r, h·w)`` on a map of width ``W`` of the ``(h, w)`` windows at
+    corners ``y, x (B, r)``."""
+    iy = y[..., None] + torch.arange(h)  # (B, r, h)
+    ix = x[..., None] + torch.arange(w)
+    return (iy[..., :, None] * W + ix[..., None, :]).flatten(-2)
+
+
 def _windows(s: torch.Tensor, y: torch.Tensor, x: torch.Tensor, h: int, w: int):
     """``s (B, C, H, W)`` read on the windows ``(h, w)`` at ``y, x (B, r)``: ``(B, r, C, h, w)``."""
     B, C, H, W = s.shape
     r = y.shape[1]
-    iy = y[..., None] + torch.arange(h)  # (B, r, h)
-    ix = x[..., None] + torch.arange(w)
-    index = (iy[..., :, None] * W + ix[..., None, :]).view(B, 1, r * h * w)
+    index = _window_index(y, x, h, w, W).view(B, 1, r * h * w)
     out = s.flatten(2).gather(2, index.expand(B, C, r * h * w))
     return out.view(B, C, r, h, w).transpose(1, 2)
 
@@ -168,9 +174,7 @@ def _placed(b: Block, size) -> torch.Tensor:
     """The block's symbols on the whole ``size (H, W)`` map: ``(B, r, C, H, W)``."""
     B, r, C, h, w = b.coeff.shape
     H, W = size
-    iy = b.y[..., None] + torch.arange(h)
-    ix = b.x[..., None] + torch.arange(w)
-    index = (iy[..., :, None] * W + ix[..., None, :]).view(B, r, 1, h * w)
+    index = _window_index(b.y, b.x, h, w, W)[:, :, None]  # (B, r, 1, h·w)
     out = b.coeff.new_zeros(B, r, C, H * W)
     out = out.scatter(3, index.expand(B, r, C, h * w), b.coeff.reshape(B, r, C, h * w))
     return out.view(B, r, C, H, W)
@@ -189,17 +193,16 @@ def reach(blocks: list[Block], like: torch.Tensor) -> torch.Tensor:
     out = like.new_zeros(B * H * W, C)
     for b in blocks:
         r, h, w = b.rows, *b.coeff.shape[-2:]
-        at = (torch.arange(B)[:, None] * (H * W) + b.y * W + b.x).reshape(-1)  # (B·r,)
         size = b.coeff.abs()
         if h * w <= REACH_OFFSETS:
+            at = (torch.arange(B)[:, None] * (H * W) + b.y * W + b.x).reshape(-1)  # (B·r,)
             size = size.permute(3, 4, 0, 1, 2).contiguous()  # (h, w, B, r, C)
             for i in range(h):
                 for j in range(w):
                     out.index_add_(0, at + (i * W + j), size[i, j].view(B * r, C))
         else:
-            offset = (torch.arange(h)[:, None] * W + torch.arange(w)).reshape(-1)  # (h·w,)
-            index = (at[:, None] + offset) * C  # (B·r, h·w), channel 0
-            index = index[:, None, :] + torch.arange(C)[:, None]  # (B·r, C, h·w)
+            where = _window_index(b.y, b.x, h, w, W) + torch.arange(B)[:, None, None] * (H * W)
+            index = where[:, :, None, :] * C + torch.arange(C)[:, None]  # (B, r, C, h·w)
             out.view(-1).index_add_(0, index.reshape(-1), size.reshape(-1))
     return out.view(B, H, W, C).permute(0, 3, 1, 2)
 
