@@ -232,13 +232,20 @@ def gather(blocks: list[Block], rows: int, start: int, like: torch.Tensor, index
 
 
 def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
-    """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row."""
-    parts = [((slice(None), slice(0, mid.shape[1])), mid)]
-    parts += [
-        ((slice(None), slice(b.start, b.start + b.rows)), _placed(b, mid.shape[-2:]))
-        for b in blocks
-    ]
-    return assemble((mid.shape[0], rows, *mid.shape[2:]), mid, parts)
+    """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row, each
+    block's windows (``S = (C, H, W)``) scattered into its rows."""
+    B, q = mid.shape[:2]
+    out = mid.new_zeros(B, rows, *mid.shape[2:])
+    out[:, :q] = mid
+    if not blocks:
+        return out
+    C, H, W = mid.shape[2:]
+    flat = out.view(B, rows, C, H * W)
+    for b in blocks:
+        r, h, w = b.rows, *b.coeff.shape[-2:]
+        index = _window_index(b.y, b.x, h, w, W)[:, :, None].expand(B, r, C, h * w)
+        flat[:, b.start : b.start + r].scatter_(3, index, b.coeff.reshape(B, r, C, h * w))
+    return out
 
 
 def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: int):
