@@ -311,7 +311,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
 
 @pytest.mark.parametrize("net_name", ["local", "pool"])
 def test_zonotope_bounds_have_the_gradient_of_their_finite_differences(net_name):
-    """The symbol blocks' backward (kpstudy.verify.symbols.assemble) is the derivative of
+    """The symbol blocks' backward (kpstudy.verify.symbols) is the derivative of
     the bounds in the network's parameters: directional finite differences, float64."""
     from kpstudy.verify import bounds as B
     from kpstudy.verify.graph import trace

@@ -95,33 +95,6 @@ def l1_rows(x: torch.Tensor, chunk: int = 16) -> torch.Tensor:
     return out
 
 
-class _Assemble(torch.autograd.Function):
-    """``Σ_i zero-padded parts[i]`` placed at ``index[i]`` of a zero tensor; the backward
-    reads each part's window of the gradient (in-place slice writes would make autograd
-    clone the whole stack once per part)."""
-
-    @staticmethod
-    def forward(ctx, shape, index, *parts):
-        out = parts[0].new_zeros(shape)
-        for where, part in zip(index, parts):
-            out[where] += part
-        ctx.index = index
-        return out
-
-    @staticmethod
-    def backward(ctx, grad):
-        return (None, None, *(grad[where] for where in ctx.index))
-
-
-def assemble(shape, like: torch.Tensor, parts) -> torch.Tensor:
-    """A tensor of ``shape`` (``like``'s dtype and device), zero but for the sum of each
-    ``(index, part)`` of ``parts`` at its ``index`` (a tuple of slices)."""
-    if not parts:
-        return like.new_zeros(shape)
-    index, tensors = zip(*parts)
-    return _Assemble.apply(tuple(shape), index, *tensors)
-
-
 def _shift(t: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor, size) -> torch.Tensor:
     """``(N, C, h, w) → (N, C, *size)``: ``out[e, :, i, j] = t[e, :, i + dy[e], j + dx[e]]``,
     zero where that lies outside ``t``."""
@@ -168,16 +141,6 @@ def _windows(s: torch.Tensor, y: torch.Tensor, x: torch.Tensor, h: int, w: int):
     index = _window_index(y, x, h, w, W).view(B, 1, r * h * w)
     out = s.flatten(2).gather(2, index.expand(B, C, r * h * w))
     return out.view(B, C, r, h, w).transpose(1, 2)
-
-
-def _placed(b: Block, size) -> torch.Tensor:
-    """The block's symbols on the whole ``size (H, W)`` map: ``(B, r, C, H, W)``."""
-    B, r, C, h, w = b.coeff.shape
-    H, W = size
-    index = _window_index(b.y, b.x, h, w, W)[:, :, None]  # (B, r, 1, h·w)
-    out = b.coeff.new_zeros(B, r, C, H * W)
-    out = out.scatter(3, index.expand(B, r, C, h * w), b.coeff.reshape(B, r, C, h * w))
-    return out.view(B, r, C, H, W)
 
 
 #: Window area up to which :func:`reach` adds one window offset at a time.
@@ -256,14 +219,9 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
     widened to whole cells (a few pixels) and pooled on its own; the
     ``(B, rows, 1, H, W)`` stack that :func:`dense` would build and pad is never formed."""
     B, q = mid.shape[:2]
-    parts = [
-        (
-            (slice(None), slice(0, q)),
-            op.forward(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, op.n_v, op.n_h),
-        )
-    ]
+    pooled_mid = op.forward(mid.reshape(B * q, *mid.shape[2:])).reshape(B, q, 1, op.n_v, op.n_h)
     (kv, kh), (left, _, top, _) = op.kernel_size, op.pad
-    scale = op.scale.to(mid.dtype)
+    pooled = []
     for b in blocks:
         coeff, y, x = b.flat()
         h, w = coeff.shape[-2:]
@@ -275,9 +233,10 @@ def cell_pool(op: ops.CellPool, mid: torch.Tensor, blocks: list[Block], rows: in
         if (kv, kh) != (1, 1):
             cells = F.avg_pool2d(cells, (kv, kh))
         cells, c0, d0 = _inside(cells, c0, d0, (op.n_v, op.n_h))
-        pooled = _placed(Block.unflat(cells, b.start, c0, d0, B), (op.n_v, op.n_h))
-        parts.append(((slice(None), slice(b.start, b.start + b.rows)), pooled * scale))
-    return assemble((B, rows, 1, op.n_v, op.n_h), mid, parts)
+        pooled.append(Block.unflat(cells, b.start, c0, d0, B))
+    out = dense(pooled_mid, pooled, rows)
+    out[:, q:] *= op.scale.to(mid.dtype)  # the θ rows have it from op.forward
+    return out
 
 
 def make(mu: torch.Tensor, start: int) -> list[Block]:
