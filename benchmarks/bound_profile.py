@@ -7,16 +7,19 @@ backbone (``--checkpoint NAME=PATH …``, e.g. the natural CNN and the verificat
 one) over the exact hull with each method and compares the bound width with the range
 reached by sampled hull images (ratio 1 = exact), and the ReLUs each method leaves
 unstable with those whose sign the samples see change (``--scales``: also sub-hulls shrunk
-towards the seed image, as a branch and bound's nodes are). Object and block hulls are
-profiled for every ``--m`` and overlap; every checkpoint sees the same hulls. Prints one
-JSON line: per run (checkpoint × hull) and method, the seconds, ``heatmap_ratio`` (the
-output's ratio) and, per ReLU and for the output, ``ratio_median``, ``unstable_bound`` and
-``unstable_sampled``.
+towards the seed image, as a branch and bound's nodes are; ``--depths``: also the union of
+the bounds of the hull's nodes after that many splits, what a search from that start
+depth begins with). Object and block hulls are profiled for every ``--m`` and overlap;
+every checkpoint sees the same hulls. Prints one JSON line: per run (checkpoint × hull ×
+scale × depth) and method, the seconds, ``heatmap_ratio`` (the output's
+``ratio_median``), ``heatmap_ratio_total`` and, per ReLU and for the output,
+``ratio_median``, ``ratio_total``, ``unstable_bound`` and ``unstable_sampled``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 
@@ -27,7 +30,7 @@ from kpstudy.models.preprocess import to_model_input
 from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ConvexHull, bound_profile
 
-COLUMNS = ("name", "ratio_median", "unstable_bound", "unstable_sampled")
+COLUMNS = ("name", "ratio_median", "ratio_total", "unstable_bound", "unstable_sampled")
 
 
 def _checkpoint(text: str) -> tuple[str, Path]:
@@ -61,7 +64,16 @@ def main(argv=None):
         default=[1.0],
         help="also profile sub-hulls shrunk towards the seed image by these factors in (0, 1]",
     )
+    ap.add_argument(
+        "--depths",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="also bound the union of the hull's 2^D nodes after D splits (0: the root)",
+    )
     args = ap.parse_args(argv)
+    if not all(d >= 0 for d in args.depths):
+        ap.error(f"--depths: expected integers >= 0, got {args.depths}")
     if not all(0 < v <= 1 for v in args.scales):
         ap.error(f"--scales: expected factors in (0, 1], got {args.scales}")
     level, hulls = study_hulls(
@@ -74,21 +86,25 @@ def main(argv=None):
         for hull_args in hulls:
             V = hull_args["V"]
             full = to_model_input(V, size=net.input_size)
-            for scale in args.scales:
+            for scale, depth in itertools.product(args.scales, args.depths):
                 hull = ConvexHull(torch.cat([full[:1], full[:1] + scale * (full[1:] - full[:1])]))
                 run = {
                     "checkpoint": name,
                     **{k: hull_args[k] for k in ("image_id", "m", "overlapping")},
                     "scale": scale,
+                    "depth": depth,
                 }
                 for method in args.methods:
                     start = time.perf_counter()
-                    profile = bound_profile(net, hull, method=method, samples=args.samples)
+                    profile = bound_profile(
+                        net, hull, method=method, samples=args.samples, depth=depth
+                    )
                     keep = [r for r in profile if r["op"] == "ReLU"] + profile[-1:]
                     run[method] = {
                         "seconds": time.perf_counter() - start,
                         "contained": all(r["contained"] for r in profile),
                         "heatmap_ratio": profile[-1]["ratio_median"],
+                        "heatmap_ratio_total": profile[-1]["ratio_total"],
                         "layers": [{k: r.get(k) for k in COLUMNS} for r in keep],
                     }
                 out["runs"].append(run)

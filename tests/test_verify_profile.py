@@ -27,6 +27,7 @@ def test_every_node_contains_its_samples(n, method):
             assert r["contained"], (type(s).__name__, r)
             if r["varying"]:
                 assert r["ratio_median"] >= 1 - 1e-3, r
+                assert r["ratio_total"] >= 1 - 1e-3, r
             if r["op"] == "ReLU":
                 assert r["unstable_bound"] >= r["unstable_sampled"]
         # The last node's widths are output_bounds' (the profile runs the same bounds).
@@ -43,7 +44,8 @@ def test_forward_is_exact_on_a_linear_network_and_ibp_is_not():
     # Uniform samples do not reach a linear map's extremes (the vertices) exactly: the
     # corners added to the samples do.
     assert all(abs(r["ratio_median"] - 1.0) < 1e-9 for r in forward)
-    assert ibp[-1]["ratio_median"] > 1.5
+    assert all(abs(r["ratio_total"] - 1.0) < 1e-9 for r in forward)
+    assert ibp[-1]["ratio_median"] > 1.5 and ibp[-1]["ratio_total"] > 1.5
 
 
 def test_crown_from_an_inner_node_equals_crown_on_the_truncated_network():
@@ -70,6 +72,28 @@ def test_crown_from_an_inner_node_equals_crown_on_the_truncated_network():
         torch.testing.assert_close(inner, truncated)
 
 
+@pytest.mark.parametrize("method", ["ibp", "forward", "zonotope"])
+def test_a_start_depth_bounds_the_union_of_its_nodes(method):
+    net = MixedNet(seed=4)
+    hull = ConvexHull(hull_vertices(4, 3, (2, 8, 8)))
+    root = bound_profile(net, hull, method=method, samples=300)
+    split = bound_profile(net, hull, method=method, samples=300, depth=1)
+    box = Box(hull.vertices.min(0).values, hull.vertices.max(0).values)
+    assert all(r["contained"] for r in bound_profile(net, box, method=method, depth=3))
+    halves = [
+        bound_profile(net, ConvexHull(hull.image(node, torch.float32)), method=method, samples=50)
+        for node in hull.split(hull.root())
+    ]
+    for i, row in enumerate(split):
+        assert row["contained"], row
+        # The union holds each half's bounds.
+        widest_half = max(h[i]["bound_width_max"] for h in halves)
+        assert row["bound_width_max"] >= widest_half * (1 - 1e-5)
+        if method == "ibp":  # intervals shrink with their input
+            assert row["bound_width_max"] <= root[i]["bound_width_max"] * (1 + 1e-5)
+    assert split[-1]["ratio_median"] < root[-1]["ratio_median"]
+
+
 @pytest.mark.parametrize(
     "kwargs, name",
     [
@@ -78,6 +102,9 @@ def test_crown_from_an_inner_node_equals_crown_on_the_truncated_network():
         ({"crown_rows": -1}, "crown_rows"),
         ({"crown_rows": True}, "crown_rows"),
         ({"chunk": 0}, "chunk"),
+        ({"depth": -1}, "depth"),
+        ({"depth": True}, "depth"),
+        ({"depth": 2, "crown_rows": 3}, "crown_rows"),
     ],
 )
 def test_bad_arguments_are_named(kwargs, name):

@@ -1,8 +1,9 @@
 """Where a bound method loses tightness: a per-node profile against sampled points.
 
 :func:`bound_profile` bounds every node of a traced network over an input set (the root
-region; ``'ibp'``, ``'forward'`` or ``'zonotope'``) and compares each node's interval
-width with the range that sampled points of the set actually reach. It counts the ReLUs
+region, or the union over a branch and bound's start depth; ``'ibp'``, ``'forward'`` or
+``'zonotope'``) and compares each node's interval width with the range that sampled
+points of the set actually reach. It counts the ReLUs
 the bounds leave unstable against those whose input the samples see change sign, and
 checks that every sampled value lies within the bounds (the method's soundness at that
 node). With ``crown_rows``, a random subset of the varying neurons of each affine node is
@@ -37,6 +38,7 @@ def bound_profile(
     method: str = "forward",
     samples: int = 1000,
     crown_rows: int = 0,
+    depth: int = 0,
     seed: int = 0,
     chunk: int = 100,
 ) -> list[dict]:
@@ -48,12 +50,18 @@ def bound_profile(
         Built from the operators of :mod:`kpstudy.verify.graph` (eval mode).
     input_set : ConvexHull, Parallelotope or Box
     method : {'ibp', 'forward', 'zonotope'}
-        How every node is bounded over the whole set (one branch-and-bound root).
+        How every node is bounded over the whole set (one branch-and-bound root, or each
+        node of ``depth``).
     samples : int
         Uniform points of the set, ≥ 1; a quarter as many corners and as many points on
         random edges are added.
     crown_rows : int
         Varying neurons per affine node also bounded by CROWN from that node (0: none).
+    depth : int
+        Splits of the set before bounding, as a branch and bound's start depth
+        (:meth:`~kpstudy.verify.ConvexHull.split`; 0: the root alone): each of the
+        ``2^depth`` nodes is bounded on its own and a neuron's bounds are their union, the
+        bounds the search starts from. ``crown_rows`` needs ``depth`` 0.
     seed : int
         For the samples and the CROWN subset.
     chunk : int
@@ -66,7 +74,9 @@ def bound_profile(
         ``shape``; ``varying`` (neurons whose sampled range exceeds
         :data:`VARYING_RTOL` of the node's largest magnitude); ``bound_width_max`` and
         ``sampled_width_max``; ``ratio_median`` (median over varying neurons of bound width
-        ÷ sampled width: 1 is exact; NaN if none varies); ``contained`` (every sampled
+        ÷ sampled width: 1 is exact; NaN if none varies) and ``ratio_total`` (their bound
+        widths' sum ÷ their sampled widths' sum: unlike the median, not lowered by the many
+        neurons a set barely moves); ``contained`` (every sampled
         value within the bounds, to float32 noise); for ReLU nodes ``unstable_bound`` (its
         input's bounds straddle 0) and ``unstable_sampled`` (samples on both sides of 0);
         for affine nodes with ``crown_rows``, ``crown_rows``, ``crown_ratio_median``
@@ -79,9 +89,15 @@ def bound_profile(
     """
     if method not in PROFILE_METHODS:
         raise ValueError(f"method: expected one of {PROFILE_METHODS}, got {method!r}")
-    for name, value, least in (("samples", samples, 1), ("crown_rows", crown_rows, 0)):
+    for name, value, least in (
+        ("samples", samples, 1),
+        ("crown_rows", crown_rows, 0),
+        ("depth", depth, 0),
+    ):
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ValueError(f"{name}: expected an integer >= {least}, got {value!r}")
+    if depth and crown_rows:
+        raise ValueError(f"crown_rows: expected 0 with depth {depth}, got {crown_rows}")
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
     graph = trace(model, _bounds.example_input(input_set))
@@ -93,19 +109,29 @@ def bound_profile(
     images = input_set.image(torch.cat(points)).to(graph.dtype)
     low_s, high_s = _sampled_ranges(graph, images, chunk)
 
-    region = _bounds.root_region(input_set, graph.dtype)
-    if method == "ibp":
-        region = region.to_interval()
-    low_b, high_b = ({0: b[0]} for b in region.bounds())  # node → bounds (*shape)
+    nodes = input_set.root()
+    for _ in range(depth):
+        nodes = input_set.split(nodes)
+    low_b: dict = {}  # graph node → the union of the set's nodes' bounds (*shape)
+    high_b: dict = {}
 
-    q = region.mid.shape[1]
+    def union(i, low, high):
+        low_b[i] = low if i not in low_b else torch.minimum(low_b[i], low)
+        high_b[i] = high if i not in high_b else torch.maximum(high_b[i], high)
 
-    def keep(i, mid, rad):
-        low, high = operators.interval(mid, rad, q, region.domain)
-        low_b[i], high_b[i] = low[0], high[0]
+    for node in nodes.split(1):
+        region = _bounds.node_region(input_set, node, graph.dtype)
+        if method == "ibp":
+            region = region.to_interval()
+        union(0, *(b[0] for b in region.bounds()))
+        q = region.mid.shape[1]
 
-    with torch.no_grad():
-        _, saved = _bounds.propagate(graph, region, keep, zonotope=method == "zonotope")
+        def keep(i, mid, rad, q=q, domain=region.domain):
+            low, high = operators.interval(mid, rad, q, domain)
+            union(i, low[0], high[0])
+
+        with torch.no_grad():
+            _, saved = _bounds.propagate(graph, region, keep, zonotope=method == "zonotope")
     g = torch.Generator().manual_seed(seed)
     rows = []
     for i, node in enumerate(graph.nodes[1:], start=1):
@@ -123,6 +149,9 @@ def bound_profile(
             "bound_width_max": float((hi - lo).max()),
             "sampled_width_max": float(width_s.max()),
             "ratio_median": _median_ratio(hi - lo, width_s, varying),
+            "ratio_total": float((hi - lo)[varying].sum() / width_s[varying].sum())
+            if varying.any()
+            else float("nan"),
             "contained": bool(((s_lo >= lo - noise) & (s_hi <= hi + noise)).all()),
         }
         rule = operators.rules(node.op.kind)
