@@ -3,15 +3,15 @@
 :func:`bound_profile` bounds every node of a traced network over an input set (the root
 region, or the union over a branch and bound's start depth; ``'ibp'``, ``'forward'`` or
 ``'zonotope'``) and compares each node's interval width with the range that sampled
-points of the set actually reach. It counts the ReLUs
-the bounds leave unstable against those whose input the samples see change sign, and
-checks that every sampled value lies within the bounds (the method's soundness at that
-node). With ``crown_rows``, a random subset of the varying neurons of each affine node is
-also bounded by CROWN pulled back from that node (the earlier ReLUs relaxed from the
-method's bounds): what back-substitution would gain there, at what cost. It answers "why
-is my instance ``unknown``?": on the trained CNN the ``'forward'`` ratio of bound to
-sampled width grows ~10× per layer (the relaxation, not the search), the
-``'zonotope'`` ratio stays near 1 on small perturbations.
+points of the set actually reach. It counts the ReLUs the bounds leave unstable against
+those whose input the samples see change sign, and checks that every sampled value lies
+within the bounds (the method's soundness at that node). With ``crown_rows``, a random
+subset of the varying neurons of each affine node is also bounded by CROWN pulled back
+from that node (the earlier ReLUs relaxed from the method's bounds): what
+back-substitution would gain there, at what cost. It answers "why is my instance
+``unknown``?": on the trained CNN the ``'forward'`` ratio of bound to sampled width grows
+~10× per layer (the relaxation, not the search), the ``'zonotope'`` ratio stays near 1 on
+small perturbations.
 """
 
 from __future__ import annotations
@@ -76,9 +76,9 @@ def bound_profile(
         ``sampled_width_max``; ``ratio_median`` (median over varying neurons of bound width
         ÷ sampled width: 1 is exact; NaN if none varies) and ``ratio_total`` (their bound
         widths' sum ÷ their sampled widths' sum: unlike the median, not lowered by the many
-        neurons a set barely moves); ``contained`` (every sampled
-        value within the bounds, to float32 noise); for ReLU nodes ``unstable_bound`` (its
-        input's bounds straddle 0) and ``unstable_sampled`` (samples on both sides of 0);
+        neurons a set barely moves); ``contained`` (every sampled value within the bounds,
+        to float32 noise); for ReLU nodes ``unstable_bound`` (its input's bounds straddle
+        0) and ``unstable_sampled`` (samples on both sides of 0);
         for affine nodes with ``crown_rows``, ``crown_rows``, ``crown_ratio_median``
         (CROWN ∩ the method's bounds, same subset) and ``crown_seconds``.
 
