@@ -8,7 +8,10 @@ import pandas as pd
 import pytest
 from matplotlib.figure import Figure
 
+from kpstudy.io import write_table
 from kpstudy.study import comparison, tables
+from kpstudy.study.reproduction import compare_results
+from tests.test_trends import wilson
 
 
 def local_records(pose_bound: bool = True) -> pd.DataFrame:
@@ -79,21 +82,53 @@ def test_method_cells_has_every_method(table):
     paper = tables.PAPER_T_LOCAL[(2, True, 1.5, 1.0)]
     cell = cells[(cells.method == "alloc (paper)") & cells.overlapping & (cells.kappa == 1.5)]
     assert cell[cell.alpha == 1.0].paper_rate.iloc[0] == paper[2]
+    # The paper's 13.1 % over 200 seeds: 26 / 200.
+    row = cell[cell.alpha == 1.0].iloc[0]
+    assert (row.paper_rate_lo, row.paper_rate_hi) == pytest.approx(wilson(26, 200), abs=1e-9)
+    # Ours: 0 of 2 and 2 of 2 seeds inside Ξ.
+    assert (pb[pb.overlapping].rate_lo.iloc[0], pb[pb.overlapping].rate_hi.iloc[0]) == (
+        pytest.approx((0.0, 0.6576198), abs=1e-6)
+    )
+    assert pb[~pb.overlapping].rate_lo.iloc[0] == pytest.approx(1 - 0.6576198, abs=1e-6)
+    assert pb[~pb.overlapping].rate_hi.iloc[0] == 1.0
+
+
+def test_method_cells_carry_the_times_median_and_quartiles():
+    records = local_records().query("model == 'cnn'").copy()
+    # Seed 0 a slow proof of 100 s in every allocation cell of α = 1.5: 30 and 100 s.
+    slow = (records.alpha == 1.5) & (records.image_id == 0)
+    records.loc[slow, "time"] = 100.0
+    records = pd.concat([records, records[slow].assign(image_id=2, time=10.0)])
+    cells = comparison.method_cells(tables.t_local(records))
+    heat = cells[(cells.method == "alloc (heatmap)") & (cells.alpha == 1.5)].iloc[0]
+    # 10, 30, 100 s: median 30, quartiles 20 and 65 (linear between the order statistics).
+    assert (heat.time_median, heat.time_q1, heat.time_q3) == (30.0, 20.0, 65.0)
+    assert heat.time_all == pytest.approx(140 / 3) and heat.timed == 3
+    assert heat.time_std == pytest.approx(np.std([10.0, 30.0, 100.0]))
+    pb = cells[(cells.method == "pb") & cells.overlapping & (cells.alpha == 1.5)].iloc[0]
+    assert (pb.time_median, pb.timed) == (200.0, 3)
 
 
 def test_compact_table_counts_rates_and_times(table):
     compact = comparison.compact_table(table)
     assert list(compact.columns) == [
-        "model", "method", "instances", "holds", "violated", "unknown", "cells", "rate",
-        "paper_rate", "delta", "proof_s", "refutation_s", "paper_s",
+        "model", "method", "instances", "holds", "violated", "unknown", "not_certifiable",
+        "fewest_seeds", "cells", "rate", "rate_lo", "rate_hi", "paper_rate", "paper_rate_lo",
+        "paper_rate_hi", "delta", "proof_s", "refutation_s", "median_low_s", "median_high_s",
+        "paper_s",
     ]  # fmt: skip
     assert len(compact) == 6
     row = compact.set_index(["model", "method"]).loc[("cnn", "alloc (heatmap)")]
     assert (row.holds, row.violated, row.unknown, row.cells) == (8, 8, 0, 8)
+    assert (row.not_certifiable, row.fewest_seeds) == (0, 2)
     assert row.rate == pytest.approx(0.5) and row.proof_s == pytest.approx(30.0)
+    assert (row.rate_lo, row.rate_hi) == pytest.approx((0.2799956, 0.7200044), abs=1e-6)  # 8/16
     assert row.refutation_s == pytest.approx(0.1)
+    assert (row.median_low_s, row.median_high_s) == (0.1, 30.0)
     paper = [v[2] for k, v in tables.PAPER_T_LOCAL.items() if k[0] == 2]
     assert row.paper_rate == pytest.approx(np.mean(paper))
+    # The paper's 8 cells of 200 seeds: 780.4 → 780 of 1600.
+    assert (row.paper_rate_lo, row.paper_rate_hi) == pytest.approx(wilson(780, 1600), abs=1e-9)
     assert row.delta == pytest.approx(0.5 - np.mean(paper))
     pb = compact.set_index(["model", "method"]).loc[("cnn", "pb")]
     assert (pb.holds, pb.unknown, pb.proof_s) == (8, 8, 50.0) and np.isnan(pb.refutation_s)
@@ -121,9 +156,12 @@ def test_figure_shows_every_method_beside_the_paper(table):
     assert len(time_axes) == 2
     assert all("ours: 2 CPU cores" in ax.get_title() and "RTX A4000" in ax.get_title()
                for ax in time_axes)  # fmt: skip
-    # Our cell at (apart, κ = 1, α = 1) under the 'heatmap' reading: 0 % against 55 %.
+    # Our cell at (apart, κ = 1, α = 1) under the 'heatmap' reading: 0 of 2 (Wilson 0–66 %)
+    # against 55 % of 200 (48–62 %).
     heat = next(ax for ax in fig.axes if ax.get_title().startswith("cnn: alloc (heatmap)"))
-    assert "ours 0%\npaper 55%\nΔ -55 pp" in _texts(heat)
+    assert "ours 0% (0–66)\npaper 55% (48–62)\nΔ -55 pp" in _texts(heat)
+    paper_grid = next(ax for ax in fig.axes if ax.get_title().startswith("paper"))
+    assert "55%\n(48–62)" in _texts(paper_grid)
     assert heat.get_yticklabels()[0].get_text() == "m=2 apart"
     assert [t.get_text() for t in heat.get_xticklabels()][:2] == ["κ=1\nα=1", "κ=1\nα=1.5"]
     # The same colour scale in every grid.
@@ -132,6 +170,7 @@ def test_figure_shows_every_method_beside_the_paper(table):
     labels = time_axes[0].get_legend_handles_labels()[1]
     assert "pb: proofs (holds)" in labels and "alloc (heatmap): refutations (violated)" in labels
     assert "pb: unknown (budget spent)" in labels  # pb's overlapping hulls, 200 s each
+    assert "alloc (heatmap): median and quartiles, all instances" in labels
     assert any(label.startswith("paper (RTX A4000)") for label in labels)
     # Proof times on the axis: 30 s for the allocation's holds, 50 s for pb.
     offsets = np.concatenate([c.get_offsets()[:, 1] for c in time_axes[0].collections
@@ -172,6 +211,16 @@ def test_old_tables_still_render():
     (time_ax,) = [ax for ax in fig.axes if ax.get_yscale() == "log"]
     labels = time_ax.get_legend_handles_labels()[1]
     assert labels[0] == "alloc: all instances (table without the split)"
+    # Older still: no medians or quartiles, no intervals stored (method_cells makes them).
+    oldest = old.drop(
+        columns=[c for c in old if c.endswith(("_lo", "_hi", "_q1", "_q3", "_median"))]
+    )
+    cells = comparison.method_cells(oldest)
+    assert cells.time_median.isna().all() and cells.rate_lo.notna().all()
+    (time_ax,) = [
+        ax for ax in comparison.plot_comparison(oldest, "oldest").axes if ax.get_yscale() == "log"
+    ]
+    assert not any("median" in lab for lab in time_ax.get_legend_handles_labels()[1])
     compact = comparison.compact_table(old)
     assert len(compact) == 1 and np.isnan(compact.proof_s.iloc[0])
     # Older still: no pb_violated / pb_unknown columns beside pb_holds.
@@ -228,3 +277,17 @@ def test_pose_bound_rate_counts_seeds_whose_argmax_pose_is_inside():
     fig = comparison.plot_comparison(table, "T-local")
     (title,) = [ax.get_title() for ax in fig.axes if ax.get_title().startswith("cnn: pb")]
     assert title.endswith("\nrate among seeds whose argmax pose is in Ξ")
+
+
+def test_intervals_compare_as_cells_and_quartiles_as_timing(tmp_path):
+    """Two runs of the same records: the intervals are numbers of the table (the same
+    counts give the same bytes), the medians and quartiles timing columns (aside)."""
+    records = local_records()
+    slower = records.assign(time=records.time * 3, pb_time=records.pb_time * 3)
+    fewer = records.assign(seed_inside=records.image_id == 0)
+    for run, frame in (("a", records), ("b", slower), ("c", fewer)):
+        write_table(tables.t_local(frame), tmp_path / run / "tables" / "t_local")
+    assert compare_results(tmp_path / "a", tmp_path / "b") == {"tables/t_local.csv": "same"}
+    differs = compare_results(tmp_path / "a", tmp_path / "c")["tables/t_local.csv"]
+    assert "verified_rate_lo" in differs and "verified_rate_hi" in differs
+    assert "time_median" not in differs and "paper_rate_lo" not in differs

@@ -82,16 +82,26 @@ def test_counts_rates_and_times_per_cell(cells):
     assert (one.holds, one.violated, one.unknown) == (2, 2, 1)
     assert one.violated_at_seed == 1  # row 1 (λ = 0); row 2's λ is not the seed
     assert one.verified_rate == pytest.approx(1 / 3)  # row 0; row 4 holds outside Ξ
+    # Wilson at 95 % for 1 of 3, by hand: (k + z²/2 ± z √(k(n−k)/n + z²/4)) / (n + z²).
+    assert (one.verified_rate_lo, one.verified_rate_hi) == pytest.approx(
+        (0.0614919, 0.7923404), abs=1e-6
+    )
     assert one.decided == pytest.approx(4 / 5)  # all but row 3
     assert one.dv_mean == pytest.approx(13 / 20) and one.dv_zero == pytest.approx(11 / 20)
     assert one.time_mean == pytest.approx(12 / 5)  # 1 + 3 + 2 + 6 + 0, the error left out
     assert one.time_std == pytest.approx(math.sqrt(21.2 / 5))  # population std
+    # 0, 1, 2, 3, 6 s: median 2, quartiles 1 and 3.
+    assert (one.time_median, one.time_q1, one.time_q3) == (2.0, 1.0, 3.0)
+    assert one.not_certifiable == 0
     assert (one.time_holds_mean, one.time_violated_mean, one.time_unknown_mean) == (0.5, 2.5, 6)
     assert one.argmax_outside == pytest.approx(0.08)  # over 'holds': rows 0 (0), 4 (0.16)
     # α = 2: no error; the violated seed's λ read back from CSV text is still λ = 0.
     assert (two.instances, two.seeds_inside, two.errors) == (3, 2, 0)
     assert (two.holds, two.violated, two.unknown, two.violated_at_seed) == (2, 1, 0, 1)
     assert two.verified_rate == 1.0 and two.decided == 1.0
+    assert (two.verified_rate_lo, two.verified_rate_hi) == pytest.approx((0.3423802, 1.0), abs=1e-6)
+    # 1, 2, 6 s: median 2, quartiles 1.5 and 4 (linear between the order statistics).
+    assert (two.time_median, two.time_q1, two.time_q3) == (2.0, 1.5, 4.0)
     assert two.dv_mean == 2.0 and two.dv_zero == 0.0
     assert two.time_mean == 3.0 and two.time_std == pytest.approx(math.sqrt(14 / 3))
     assert (two.time_holds_mean, two.time_violated_mean) == (4.0, 1.0)
@@ -105,7 +115,12 @@ def test_pose_bound_columns_per_cell(cells):
     # Its own denominator: seeds whose argmax pose is inside (rows 0, 2, 3, 4), all but
     # row 4 proved; over the target model's (rows 0, 1, 3) it would be 2/3.
     assert one.pb_seeds_inside == 4 and one.pb_verified_rate == 0.75
+    assert (one.pb_verified_rate_lo, one.pb_verified_rate_hi) == pytest.approx(
+        (0.3006418, 0.9544127), abs=1e-6
+    )  # 3 of 4
     assert one.pb_time_mean == 30.0  # 10 … 50
+    assert one.pb_time_std == pytest.approx(math.sqrt(200.0))
+    assert (one.pb_time_median, one.pb_time_q1, one.pb_time_q3) == (30.0, 20.0, 40.0)
     assert one.pb_time_holds_mean == pytest.approx(80 / 3)  # rows 0, 2, 3
     assert (one.pb_time_violated_mean, one.pb_time_unknown_mean) == (20.0, 50.0)
     # Row 4 has no pb_rule: an 'unknown' from before the field was decided by 'linearised'.
@@ -140,6 +155,41 @@ def test_a_cell_without_a_seed_inside_has_no_rate():
     assert row.pb_time_mean == 1.0  # over the records with a pose bound
     with pytest.raises(ValueError, match=r"records: .*\['seed_inside'\]"):
         tables.summarise(records.drop(columns="seed_inside"), ["alpha"])
+
+
+@pytest.mark.parametrize("form", ["stored", "csv"])
+def test_not_certifiable_has_its_own_column_and_stays_in_the_rate(form):
+    """A seed whose pixel grid alone exceeds ε / κ: counted apart, never decided, in the
+    verified rate's denominator when inside Ξ; its cells (none) are left out of the δv
+    columns, which read float half-widths as well as integers."""
+    rows = [
+        _record("holds", True, image_id=0, time=2.0, dv=[[0.5, 1.0], [1.5, 0.0]]),
+        _record("not_certifiable", True, image_id=1, time=0.0, dv=None),
+        _record("not_certifiable", False, image_id=2, time=0.0, dv=[[0, 0], [0, 0]]),
+        _record(
+            "violated", True, image_id=3, time=1.0, dv=[[1, 1], [1, 1]], counterexample=[0.0, 0.0]
+        ),  # fmt: skip
+        dict(kind="contrast", level=5e-4, image_id=4, kappa=1.0, alpha=1.0, status="error"),
+    ]
+    records = _both(pd.DataFrame(rows))[form == "csv"]
+    row = tables.t_global(records).iloc[0]
+    assert (row.instances, row.errors) == (5, 1)
+    assert (row.holds, row.violated, row.unknown, row.not_certifiable) == (1, 1, 0, 2)
+    assert row.holds + row.violated + row.unknown + row.not_certifiable + row.errors == 5
+    assert row.seeds_inside == 3 and row.verified_rate == pytest.approx(1 / 3)
+    assert row.decided == pytest.approx(2 / 4)  # holds and violated of the 4 that ran
+    # δv over seeds 0 and 3 only: 0.5, 1, 1.5, 0, 1, 1, 1, 1.
+    assert row.dv_mean == pytest.approx(7 / 8) and row.dv_zero == pytest.approx(1 / 8)
+    assert row.time_mean == pytest.approx(0.75)  # 2, 0, 0, 1
+    # The paper's 57 % of 200 seeds: 114 of 200.
+    assert (row.paper_rate, row.paper_rate_lo) == (0.570, pytest.approx(0.500705, abs=1e-6))
+    only = _both(pd.DataFrame(rows[1:3]))[form == "csv"]
+    row = tables.t_global(only).iloc[0]
+    assert row.not_certifiable == 2 and row.verified_rate == 0.0
+    assert np.isnan(row.dv_mean) and np.isnan(row.dv_zero)  # no cell to measure
+    assert (row.verified_rate_lo, row.verified_rate_hi) == pytest.approx(
+        (0.0, 0.7934506), abs=1e-6
+    )  # 0 of 1: z² / (1 + z²)
 
 
 def test_t_global_has_a_row_per_model_reading_and_cell_with_the_papers_numbers():

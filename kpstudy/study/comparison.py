@@ -6,7 +6,8 @@ A *method* is one way the study decides an instance, read from the columns of a
 
 * ``alloc (heatmap)`` / ``alloc (paper)``: the allocation method (the paper's) under each
   tolerance reading (``tolerance_units``; plain ``alloc`` for tables without the column):
-  ``verified_rate``, ``holds`` / ``violated`` / ``unknown``, ``time_*``;
+  ``verified_rate``, ``holds`` / ``violated`` / ``unknown`` / ``not_certifiable``,
+  ``time_*``;
 * ``pb``: the pose-bound method (:mod:`kpstudy.certify.pose_bound_method`), on the rows that
   have its columns (``pb_*``). Its time is one region search per hull, counted in full in each
   (κ, α) cell of the hull.
@@ -16,8 +17,11 @@ the figure, which a test can check); :func:`plot_comparison` draws it and
 :func:`compact_table` condenses it to one row per model and method. Times compare like
 with like: our mean time over proofs (``holds``) beside the paper's time per instance,
 our refutations (``violated``, often a counterexample found in a fraction of a second)
-apart; tables from before that split show the mean over all instances instead. A cell
-without data (no such record, or no seed inside Ξ for a rate) is hatched, never drawn as 0.
+apart; tables from before that split show the mean over all instances instead. Every
+rate carries its 95 % Wilson interval (:func:`kpstudy.study.trends.rate_interval`; the
+paper's over its 200 seeds), and the times their median and quartiles beside the mean. A
+cell without data (no such record, or no seed inside Ξ for a rate) is hatched, never
+drawn as 0.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ import pandas as pd
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
+
+from kpstudy.study.trends import MIN_SEEDS, PAPER_SEEDS, paper_interval, rate_intervals
 
 __all__ = [
     "CONDITIONS",
@@ -53,23 +59,41 @@ CELL_COLUMNS = (
     "holds",
     "violated",
     "unknown",
+    "not_certifiable",
     "rate",
+    "rate_lo",
+    "rate_hi",
+    "timed",
     "time_all",
+    "time_std",
+    "time_median",
+    "time_q1",
+    "time_q3",
     "time_proof",
     "time_refute",
     "time_unknown",
     "exact_holds",
     "paper_rate",
+    "paper_rate_lo",
+    "paper_rate_hi",
     "paper_time_mean",
     "paper_time_std",
 )
 _PAPER = ("paper_rate", "paper_time_mean", "paper_time_std")
-#: method → table columns for (holds, violated, unknown, rate, time_all, time_proof,
-#: time_refute, time_unknown)
-_ALLOC = ("holds", "violated", "unknown", "verified_rate", "time_mean", "time_holds_mean",
-          "time_violated_mean", "time_unknown_mean")  # fmt: skip
-_PB = ("pb_holds", "pb_violated", "pb_unknown", "pb_verified_rate", "pb_time_mean",
-       "pb_time_holds_mean", "pb_time_violated_mean", "pb_time_unknown_mean")  # fmt: skip
+#: method → {cell column: table column} (None: the method has none)
+_ALLOC = dict(
+    holds="holds", violated="violated", unknown="unknown", not_certifiable="not_certifiable",
+    rate="verified_rate", time_all="time_mean", time_std="time_std", time_median="time_median",
+    time_q1="time_q1", time_q3="time_q3", time_proof="time_holds_mean",
+    time_refute="time_violated_mean", time_unknown="time_unknown_mean",
+)  # fmt: skip
+_PB = dict(
+    holds="pb_holds", violated="pb_violated", unknown="pb_unknown", not_certifiable=None,
+    rate="pb_verified_rate", time_all="pb_time_mean", time_std="pb_time_std",
+    time_median="pb_time_median", time_q1="pb_time_q1", time_q3="pb_time_q3",
+    time_proof="pb_time_holds_mean", time_refute="pb_time_violated_mean",
+    time_unknown="pb_time_unknown_mean",
+)  # fmt: skip
 _NEEDED = ("kappa", "alpha", "instances", "seeds_inside", "verified_rate", *_PAPER)
 
 
@@ -88,15 +112,21 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     DataFrame
         Columns ``model`` (``''`` without one), ``method`` (``'alloc (heatmap)'``,
         ``'alloc (paper)'``, ``'alloc'``, ``'pb'``), the cell's :data:`CONDITIONS` present,
-        ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts, ``rate`` (holds among seeds
-        inside Ξ ÷ those seeds, NaN without any; for ``pb``, seeds whose argmax → PnP pose
-        is inside Ξ, ``pb_seeds_inside``, where the table has them), times in seconds per instance
-        (``time_all`` over all instances, ``time_proof`` over ``holds``, ``time_refute``
-        over ``violated``, ``time_unknown`` over ``unknown``; NaN where there are none or
-        the table has no such column), ``exact_holds`` (the pose-bound method's ``holds``
+        ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts (``not_certifiable``: the
+        allocation method's only, NaN for ``pb`` and tables without it), ``rate`` (holds
+        among seeds inside Ξ ÷ those seeds, NaN without any; for ``pb``, seeds whose argmax
+        → PnP pose is inside Ξ, ``pb_seeds_inside``, where the table has them) and its 95 %
+        Wilson interval ``rate_lo`` – ``rate_hi`` (from the rate and ``seeds_inside``),
+        ``timed`` (the instances a time is over: ``instances − errors``, for ``pb`` its
+        verdicts), times in seconds per instance (``time_all`` over all instances, with
+        ``time_std``, ``ddof = 0``, ``time_median``, ``time_q1``, ``time_q3``;
+        ``time_proof`` over ``holds``, ``time_refute`` over ``violated``, ``time_unknown``
+        over ``unknown``; NaN where there are none or the table has no such column),
+        ``exact_holds`` (the pose-bound method's ``holds``
         decided by PnP over every region combination, exact for argmax → PnP; the others
         rest on the linearised bound; NaN for the allocation method), and
-        the paper's rate and time (NaN where the paper has no cell).
+        the paper's rate with the interval of its 200 seeds and its time (NaN where the
+        paper has no cell).
     """
     if not isinstance(table, pd.DataFrame):
         raise ValueError(f"table: expected a pandas DataFrame, got {type(table).__name__}")
@@ -137,32 +167,29 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def _method_frame(table, model, names, columns, conditions, exact, seeds) -> pd.DataFrame:
-    holds, violated, unknown, rate, time_all, proof, refute, undecided = (
-        _numeric(table, c) for c in columns
-    )
+    values = {c: _numeric(table, t) for c, t in columns.items()}
     data = {"model": model.to_numpy(), "method": names.to_numpy()}
     for c in (*conditions, *GRID_COLUMNS):
         data[c] = table[c].to_numpy()
-    data.update(
+    values.update(
         instances=_numeric(table, "instances"),
         seeds_inside=_numeric(table, seeds),
-        holds=holds,
-        violated=violated,
-        unknown=unknown,
-        rate=rate,
-        time_all=time_all,
-        time_proof=proof,
-        time_refute=refute,
-        time_unknown=undecided,
-        exact_holds=_numeric(table, exact) if exact else np.full(len(table), np.nan),
+        exact_holds=_numeric(table, exact),
         **{c: _numeric(table, c) for c in _PAPER},
     )
+    values["rate_lo"], values["rate_hi"] = rate_intervals(values["rate"], values["seeds_inside"])
+    values["paper_rate_lo"], values["paper_rate_hi"] = paper_interval(values["paper_rate"])
+    if columns is _PB:  # the instances with a verdict of the pose-bound method
+        values["timed"] = values["holds"] + values["violated"] + values["unknown"]
+    else:  # errors have no time
+        values["timed"] = values["instances"] - np.nan_to_num(_numeric(table, "errors"))
+    data.update({c: values[c] for c in CELL_COLUMNS})
     return pd.DataFrame(data)
 
 
-def _numeric(table: pd.DataFrame, column: str) -> np.ndarray:
-    """``table[column]`` as float64, NaN where absent or not a number."""
-    if column not in table:
+def _numeric(table: pd.DataFrame, column: str | None) -> np.ndarray:
+    """``table[column]`` as float64, NaN where absent (or None) or not a number."""
+    if column is None or column not in table:
         return np.full(len(table), np.nan)
     return pd.to_numeric(table[column], errors="coerce").to_numpy(np.float64)
 
@@ -179,17 +206,33 @@ def compact_table(table: pd.DataFrame) -> pd.DataFrame:
     Returns
     -------
     DataFrame
-        ``model``, ``method``, ``instances``, ``holds``, ``violated``, ``unknown`` (counts
-        over the table), ``cells`` (cells where ours and the paper's rate both exist),
-        ``rate`` and ``paper_rate`` (mean over those cells), ``delta`` (``rate −
-        paper_rate``), ``proof_s`` (mean seconds over our ``holds``), ``refutation_s``
-        (over our ``violated``), ``paper_s`` (the paper's mean time per instance, averaged
-        over the method's cells that the paper has).
+        ``model``, ``method``, ``instances``, ``holds``, ``violated``, ``unknown``,
+        ``not_certifiable`` (counts over the table; None where the table has none),
+        ``fewest_seeds`` (the fewest seeds inside Ξ of a cell: below
+        :data:`kpstudy.study.trends.MIN_SEEDS` a smoke test), ``cells`` (cells where ours
+        and the paper's rate both exist), ``rate`` (holds among the seeds inside Ξ over
+        those cells ÷ those seeds) with its 95 % Wilson interval ``rate_lo`` – ``rate_hi``
+        (the seeds recur from cell to cell and the interval takes them as independent:
+        if anything too narrow), ``paper_rate`` (the mean of the paper's over those cells)
+        with ``paper_rate_lo`` – ``paper_rate_hi`` (over 200 seeds per cell), ``delta``
+        (``rate − paper_rate``), ``proof_s`` (mean seconds over our ``holds``),
+        ``refutation_s`` (over our ``violated``), ``median_low_s`` – ``median_high_s`` (the
+        smallest and the largest of the cells' median seconds over all instances; NaN for
+        a table without medians), ``paper_s`` (the paper's mean time per instance,
+        averaged over the method's cells that the paper has).
     """
     cells = method_cells(table)
     rows = []
     for (model, method), part in cells.groupby(["model", "method"], sort=False):
         both = part.dropna(subset=["rate", "paper_rate"])
+        k = float(np.rint(both["rate"] * both["seeds_inside"]).sum())
+        n = float(both["seeds_inside"].sum())
+        rate = k / n if n else np.nan
+        paper = float(both["paper_rate"].mean()) if len(both) else np.nan
+        (rate_lo,), (rate_hi,) = rate_intervals([rate], n)
+        (paper_lo,), (paper_hi,) = rate_intervals([paper], PAPER_SEEDS * len(both))
+        seeds = part["seeds_inside"].dropna()
+        medians = part["time_median"].dropna()
         rows.append(
             dict(
                 model=model,
@@ -198,12 +241,20 @@ def compact_table(table: pd.DataFrame) -> pd.DataFrame:
                 holds=_count(part["holds"]),
                 violated=_count(part["violated"]),
                 unknown=_count(part["unknown"]),
+                not_certifiable=_count(part["not_certifiable"]),
+                fewest_seeds=int(seeds.min()) if len(seeds) else None,
                 cells=len(both),
-                rate=float(both["rate"].mean()) if len(both) else np.nan,
-                paper_rate=float(both["paper_rate"].mean()) if len(both) else np.nan,
-                delta=float((both["rate"] - both["paper_rate"]).mean()) if len(both) else np.nan,
+                rate=rate,
+                rate_lo=rate_lo,
+                rate_hi=rate_hi,
+                paper_rate=paper,
+                paper_rate_lo=paper_lo,
+                paper_rate_hi=paper_hi,
+                delta=rate - paper,
                 proof_s=_weighted(part["time_proof"], part["holds"]),
                 refutation_s=_weighted(part["time_refute"], part["violated"]),
+                median_low_s=float(medians.min()) if len(medians) else np.nan,
+                median_high_s=float(medians.max()) if len(medians) else np.nan,
                 paper_s=float(part["paper_time_mean"].mean()),
             )
         )
@@ -259,8 +310,8 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
     models = list(dict.fromkeys(cells["model"]))
     methods = _method_order(cells["method"])
     n_panels = len(methods) + 1
-    panel_w = max(2.4, 0.7 * len(cols) + 0.9)
-    panel_h = max(1.6, 0.5 * len(rows) + 0.9)
+    panel_w = max(2.4, 1.0 * len(cols) + 0.9)
+    panel_h = max(1.6, 0.55 * len(rows) + 0.9)
     width = max(9.0, panel_w * n_panels + 1.5)
     fig = Figure(figsize=(width, len(models) * (panel_h + 3.6) + 1.2), layout="constrained")
     grid = fig.add_gridspec(2 * len(models), n_panels, height_ratios=[panel_h, 3.0] * len(models))
@@ -300,8 +351,16 @@ def plot_comparison(table: pd.DataFrame, title: str, hardware: str | None = None
     )
     if image is not None:
         fig.colorbar(image, ax=fig.axes[:n_panels], shrink=0.8, label="verified rate")
+    seeds = cells.loc[cells["method"] != "pb", "seeds_inside"].dropna()
+    smoke = (
+        f"\nsmoke test: as few as {int(seeds.min())} seeds inside Ξ in a cell (fewer than "
+        f"{MIN_SEEDS}): the intervals are wide, nothing here is a finding"
+        if len(seeds) and seeds.min() < MIN_SEEDS
+        else ""
+    )
     fig.suptitle(
-        f"{title}\nverified rate (holds among seeds inside Ξ) and time, ours beside the paper's"
+        f"{title}\nverified rate (holds among seeds inside Ξ) with its 95 % interval and time, "
+        f"ours beside the paper's (its interval: 200 seeds){smoke}"
     )
     return fig
 
@@ -330,6 +389,10 @@ def _rate_grid(ax, part, conditions, rows, cols, norm, ours: bool):
     paper's; NaN cells hatched. Returns the image (for the colour bar)."""
     paper = _lookup(part, conditions, rows, cols, "paper_rate")
     values = _lookup(part, conditions, rows, cols, "rate") if ours else paper
+    bounds = {
+        c: _lookup(part, conditions, rows, cols, c)
+        for c in ("rate_lo", "rate_hi", "paper_rate_lo", "paper_rate_hi")
+    }
     image = ax.imshow(
         np.ma.masked_invalid(values), cmap="viridis", norm=norm, aspect="auto", zorder=1
     )
@@ -342,10 +405,14 @@ def _rate_grid(ax, part, conditions, rows, cols, norm, ours: bool):
     present = _lookup(part, conditions, rows, cols, "instances") if ours else None
     for r in range(len(rows)):
         for c in range(len(cols)):
-            text, value = _cell_text(values[r, c], paper[r, c], ours, seeds, present, r, c)
+            ours_ci = (bounds["rate_lo"][r, c], bounds["rate_hi"][r, c])
+            paper_ci = (bounds["paper_rate_lo"][r, c], bounds["paper_rate_hi"][r, c])
+            text, value = _cell_text(
+                values[r, c], paper[r, c], ours, seeds, present, r, c, ours_ci, paper_ci
+            )
             light = np.isfinite(value) and value > 0.55
             ax.text(
-                c, r, text, ha="center", va="center", fontsize=6.5, zorder=2,
+                c, r, text, ha="center", va="center", fontsize=6, zorder=2,
                 color="k" if light or not np.isfinite(value) else "w",
             )  # fmt: skip
     ax.set_xticks(range(len(cols)), [f"κ={k:g}\nα={a:g}" for k, a in cols], fontsize=7)
@@ -355,16 +422,23 @@ def _rate_grid(ax, part, conditions, rows, cols, norm, ours: bool):
     return image
 
 
-def _cell_text(value, paper, ours, seeds, present, r, c) -> tuple[str, float]:
+def _cell_text(value, paper, ours, seeds, present, r, c, ours_ci, paper_ci) -> tuple[str, float]:
     if not ours:
-        return (f"{paper:.0%}" if np.isfinite(paper) else "no cell"), paper
+        text = f"{paper:.0%}\n{_interval(*paper_ci)}" if np.isfinite(paper) else "no cell"
+        return text, paper
     if not np.isfinite(present[r, c]):
         return "no data", value
     if not np.isfinite(value):
         return "no seed\nin Ξ", value
-    paper_text = f"paper {paper:.0%}" if np.isfinite(paper) else "paper –"
+    paper_text = f"paper {paper:.0%} {_interval(*paper_ci)}" if np.isfinite(paper) else "paper –"
     delta = f"Δ {100 * (value - paper):+.0f} pp" if np.isfinite(paper) else ""
-    return "\n".join(t for t in (f"ours {value:.0%}", paper_text, delta) if t), value
+    lines = (f"ours {value:.0%} {_interval(*ours_ci)}", paper_text, delta)
+    return "\n".join(t for t in lines if t), value
+
+
+def _interval(low: float, high: float) -> str:
+    """A 95 % interval in percent, ``(44–56)``."""
+    return f"({100 * low:.0f}–{100 * high:.0f})" if np.isfinite(low) else ""
 
 
 def _row_label(conditions, key) -> str:
@@ -381,13 +455,15 @@ def _row_label(conditions, key) -> str:
 
 
 def _counts(part: pd.DataFrame) -> str:
-    """``holds / violated / unknown`` of a method's cells (``?`` where not stored); for
-    the pose-bound method, how many holds are exact and how many rest on the linearised
-    bound."""
+    """``holds / violated / unknown`` of a method's cells (``?`` where not stored), the
+    allocation method's ``not_certifiable`` where there are any; for the pose-bound
+    method, how many holds are exact and how many rest on the linearised bound."""
     text = "holds/violated/unknown " + "/".join(
         "?" if part[c].isna().all() else str(int(part[c].sum()))
         for c in ("holds", "violated", "unknown")
     )
+    if part["not_certifiable"].fillna(0).gt(0).any():
+        text += f"\nnot certifiable (pixel grid > ε): {int(part['not_certifiable'].sum())}"
     if part["exact_holds"].notna().any() and part["holds"].notna().any():
         exact = int(part["exact_holds"].sum())
         text += f"\n(holds: {exact} exact, {int(part['holds'].sum()) - exact} linearised bound)"
@@ -421,6 +497,7 @@ def _time_panel(ax, part, conditions, rows, cols, methods):
                 ax.scatter(x + shift, undecided, marker="x", color=color, s=22, zorder=3,
                            lw=1, label=f"{method}: unknown (budget spent)")  # fmt: skip
             drawn += [proof, refute, undecided]
+            drawn += _quartiles(ax, mine, conditions, present, x + shift + width / 3, color, method)
         else:  # a table from before the split: all instances together
             every = np.array([_value(mine, conditions, r, c, "time_all") for r, c in present])
             ax.scatter(x + shift, every, marker="s", color=color, s=18, zorder=3,
@@ -451,6 +528,22 @@ def _time_panel(ax, part, conditions, rows, cols, methods):
     ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=6.5)
     ax.set_xlim(-0.6, max(len(present), 1) - 0.4)
     ax.grid(axis="y", which="major", alpha=0.3)
+
+
+def _quartiles(ax, mine, conditions, present, x, color, method) -> list[np.ndarray]:
+    """A method's median time over all instances of each cell (a bar) with its quartiles
+    (a line), beside its means; nothing for a table from before the quartiles."""
+    q1, median, q3 = (
+        np.array([_value(mine, conditions, r, c, column) for r, c in present])
+        for column in ("time_q1", "time_median", "time_q3")
+    )
+    ok = np.isfinite(median)
+    if not ok.any():
+        return []
+    ax.vlines(x[ok], q1[ok], q3[ok], color=color, lw=1, alpha=0.7, zorder=2)
+    ax.scatter(x[ok], median[ok], marker="_", color=color, s=40, lw=1.5, zorder=3,
+               label=f"{method}: median and quartiles, all instances")  # fmt: skip
+    return [q1, q3]
 
 
 def _mask(part, conditions, row, col) -> np.ndarray:

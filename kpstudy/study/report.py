@@ -6,26 +6,32 @@ a missing table or figure is listed as missing rather than skipped silently. The
 verification tables (T-local, T-global, T-resnet: :data:`COMPARED`) are shown as their
 figure (:func:`kpstudy.study.comparison.plot_comparison`), a compact table of the numbers a
 reader compares (:func:`kpstudy.study.comparison.compact_table`), a link to the full CSV and
-the full table folded; their readings test each trend the paper states
-(:mod:`kpstudy.study.trends`) on our numbers and on the paper's.
+the full table folded; their readings say where our 95 % intervals and the paper's
+overlap (:func:`interval_readings`), whether a cell's seeds make it a smoke test, what the
+pixel grid alone rules out (``not_certifiable``), and test each trend the paper states at
+95 % (:mod:`kpstudy.study.trends`) on our numbers and on the paper's.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from kpstudy.io import write_text_atomic
 from kpstudy.study.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
 from kpstudy.study.tables import reading_comparison
-from kpstudy.study.trends import trend_table
+from kpstudy.study.trends import LEVEL, MIN_SEEDS, trend_table
 
 __all__ = [
     "COMPARED",
     "SECTIONS",
     "campaign_summary",
     "compact_markdown",
+    "interval_readings",
+    "not_certifiable_reading",
+    "smoke_test_reading",
     "t_prob_readings",
     "trend_markdown",
     "trend_readings",
@@ -156,9 +162,13 @@ def _compared(name: str, table: pd.DataFrame, md: Path, figures: Path) -> list[s
         else [f"*Figure `{name}` is missing.*", ""]
     )
     lines += [
-        f"Per model and method: counts over the table, verified rate ours and the paper's "
-        f"(mean over the cells where both exist), seconds per instance over our proofs "
-        f"and our refutations apart, and the paper's. Full table: "
+        f"Per model and method: counts over the table, verified rate ours (holds among the "
+        f"seeds inside Ξ over the cells where the paper has one) and the paper's (mean over "
+        f"those cells), each with its {LEVEL:.0%} Wilson interval (the paper's over 200 "
+        f"seeds per cell; the seeds recur from cell to cell, so pooled intervals are if "
+        f"anything too narrow), seconds per instance over our proofs and our refutations "
+        f"apart, the range of the cells' median times over all instances, and the paper's "
+        f"mean. Full table: "
         f"[tables/{name}.csv](tables/{name}.csv) ({table.shape[1]} columns); records: "
         f"[tables/{name}_records.csv](tables/{name}_records.csv).",
         "",
@@ -176,20 +186,26 @@ def _compared(name: str, table: pd.DataFrame, md: Path, figures: Path) -> list[s
 
 
 def compact_markdown(compact: pd.DataFrame) -> str:
-    """:func:`kpstudy.study.comparison.compact_table` as a GitHub Markdown table: rates in %,
-    differences in percentage points, seconds to 3 significant digits, ``–`` where
-    there is no number."""
+    """:func:`kpstudy.study.comparison.compact_table` as a GitHub Markdown table: rates in %
+    with their 95 % interval, differences in percentage points, seconds to 3 significant
+    digits, ``–`` where there is no number (``?``: a count the table does not have)."""
     head = (
-        "| model | method | instances | holds / violated / unknown | cells | verified rate "
-        "| paper | Δ | proofs (s) | refutations (s) | paper (s) |"
+        "| model | method | instances | holds / violated / unknown / not certifiable | cells "
+        "| verified rate (95 % CI) | paper (95 % CI) | Δ | proofs (s) | refutations (s) "
+        "| cell medians (s) | paper (s) |"
     )
-    lines = [head, "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in compact.itertuples(index=False):
         counts = " / ".join(_count(v) for v in (r.holds, r.violated, r.unknown))
+        counts += " / " + ("–" if r.method == "pb" else _count(r.not_certifiable))
+        medians = (
+            "–" if pd.isna(r.median_low_s) else f"{_sec(r.median_low_s)}–{_sec(r.median_high_s)}"
+        )
         lines.append(
             f"| {r.model or '–'} | {r.method} | {int(r.instances)} | {counts} | {r.cells} | "
-            f"{_pct(r.rate)} | {_pct(r.paper_rate)} | {_pp(r.delta)} | {_sec(r.proof_s)} | "
-            f"{_sec(r.refutation_s)} | {_sec(r.paper_s)} |"
+            f"{_pct(r.rate, r.rate_lo, r.rate_hi)} | "
+            f"{_pct(r.paper_rate, r.paper_rate_lo, r.paper_rate_hi)} | {_pp(r.delta)} | "
+            f"{_sec(r.proof_s)} | {_sec(r.refutation_s)} | {medians} | {_sec(r.paper_s)} |"
         )
     return "\n".join(lines)
 
@@ -198,8 +214,13 @@ def _count(value) -> str:
     return "?" if value is None or pd.isna(value) else str(int(value))
 
 
-def _pct(value) -> str:
-    return "–" if pd.isna(value) else f"{value:.0%}"
+def _pct(value, low=None, high=None) -> str:
+    """A rate in %, with its interval ``(low–high)`` in % where given."""
+    if pd.isna(value):
+        return "–"
+    if low is None or pd.isna(low):
+        return f"{value:.0%}"
+    return f"{value:.0%} ({100 * low:.0f}–{100 * high:.0f})"
 
 
 def _pp(value) -> str:
@@ -238,11 +259,19 @@ def trend_markdown(trends: pd.DataFrame) -> str:
     ]
     return "\n".join(
         [
-            "The trends the paper states, tested on the numbers: per pair of cells that "
-            "differ only in that axis (its smallest value against its largest), how many "
-            "move as the paper states, against it, or not at all, and the mean change; "
-            "*yes* when more than half the pairs move as stated and none against, *partly* "
-            "when more move as stated than against it.",
+            f"The trends the paper states, tested at {LEVEL:.0%} on the numbers: the cells "
+            "that differ only in that axis are paired (its smallest value against its "
+            "largest) and the two ends compared, pooled over the pairs: *shown* when they "
+            "differ significantly in the paper's direction, *contradicted* when they differ "
+            "significantly against it, *not shown* otherwise (a rate: Fisher's exact test "
+            "on the holds among the seeds inside Ξ, the paper's over its 200 seeds per "
+            "cell; soundness and completeness: on the Monte Carlo samples, the paper's "
+            "3000 × 5000, which cluster by image, so the test is if anything too "
+            "confident there; a time per instance: Welch's t-test on the mean, from each "
+            "cell's mean, standard deviation and count, the paper's over 200 instances). "
+            "Then how many pairs move as the paper states, against it, or not at all, and "
+            f"the mean change. A *smoke test* has fewer than {MIN_SEEDS} seeds (instances, "
+            "for a time) in a cell: its verdict is computed, never a finding.",
             "",
             head,
             rule,
@@ -320,7 +349,13 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
         f"({at_seed} of them at the seed image itself, λ = 0), {int(table.unknown.sum())} "
         f"unknown"
         + (
-            f", {int(table.errors.sum())} not certifiable (stored as errors)"
+            f", {int(table.not_certifiable.sum())} not certifiable at the heatmap's resolution"
+            if "not_certifiable" in table
+            else ""
+        )
+        + (
+            f", {int(table.errors.sum())} that could not be run (errors, e.g. a keypoint "
+            "outside the heatmap)"
             if "errors" in table
             else ""
         )
@@ -365,6 +400,7 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
             f"{int(table.pb_by_enumeration.sum())}, {int(table.pb_enumeration_holds.sum())} of "
             f"them holds; by the linearised bound: {int(table.pb_by_linearised.sum())}."
         )
+    lines += not_certifiable_reading(table)
     capped = [
         f"{int(table[column].sum())} of the {name}"
         for column, name in (
@@ -381,10 +417,120 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
     return lines
 
 
+def not_certifiable_reading(table: pd.DataFrame) -> list[str]:
+    """Per α (and κ where it varies), the fraction of seeds whose pixel grid alone already
+    exceeds ε / κ (``not_certifiable``: the paper's method cannot certify them at the
+    model's heatmap resolution), among the instances that ran (``instances − errors``), of
+    a table of one model; ``[]`` for a table without the column."""
+    if "not_certifiable" not in table or not len(table):
+        return []
+    ran = table["instances"] - (table["errors"] if "errors" in table else 0)
+    frame = table.assign(_ran=ran)
+    parts = []
+    for alpha, at in frame.groupby("alpha", sort=True):
+        text = f"α = {alpha:g}: {_fraction(at)}"
+        if at["kappa"].nunique() > 1:
+            each = [f"κ = {k:g}: {_fraction(c)}" for k, c in at.groupby("kappa", sort=True)]
+            text += f" ({', '.join(each)})"
+        parts.append(text)
+    model = str(table["model"].iloc[0]) if "model" in table else ""
+    size = _heatmap_size(model)
+    where = (
+        f"{size}×{size} heatmaps of `{model}`"
+        if size
+        else (f"heatmaps of `{model}`" if model else "model's heatmaps")
+    )
+    return [
+        f"The pixel grid alone rules out (status `not_certifiable`: the nearest pixels of "
+        f"the exact keypoints already move the pose out of ε / κ, so no cell of the "
+        f"{where} certifies the seed; counted in the verified rate's denominator) "
+        f"{'; '.join(parts)} of the seeds."
+    ]
+
+
+def _fraction(cells: pd.DataFrame) -> str:
+    """``not_certifiable`` ÷ instances that ran, over ``cells``, in %."""
+    ran = float(cells["_ran"].sum())
+    return "n/a" if not ran else f"{cells['not_certifiable'].sum() / ran:.0%}"
+
+
+def _heatmap_size(model: str) -> int | None:
+    """The heatmap side of a backbone named ``model`` (64 for the CNNs, 256 for
+    ResNet-18); None for a name that is not a backbone's."""
+    from kpstudy.models.backbones import BACKBONES
+
+    size = getattr(BACKBONES.get(model), "heatmap_size", None)
+    return int(size) if size else None
+
+
+def smoke_test_reading(table: pd.DataFrame) -> list[str]:
+    """One sentence when a cell of a verification table has fewer than
+    :data:`kpstudy.study.trends.MIN_SEEDS` seeds inside Ξ (the allocation method's; every
+    model and reading): the table is a smoke test, not a finding. ``[]`` otherwise."""
+    seeds = pd.to_numeric(table["seeds_inside"], errors="coerce").dropna()
+    if not len(seeds) or seeds.min() >= MIN_SEEDS:
+        return []
+    return [
+        f"**Smoke test.** A cell has as few as {int(seeds.min())} seeds inside Ξ (at most "
+        f"{int(seeds.max())}; a finding needs {MIN_SEEDS} or more per cell): the "
+        f"intervals are wide, and no difference from the paper and no verdict on a trend "
+        f"below is a finding (each verdict is still computed and says so)."
+    ]
+
+
+def interval_readings(table: pd.DataFrame) -> list[str]:
+    """Per model and method of a verification table (:func:`kpstudy.study.comparison.method_cells`),
+    where our verified rate's 95 % interval and the paper's overlap and where they do
+    not: the cells where ours lies wholly below the paper's, those where it lies wholly
+    above (each with both intervals), and how many overlap. ``[]`` without a cell where
+    both have a rate."""
+    cells = method_cells(table)
+    conditions = [c for c in CONDITIONS if c in cells]
+    lines = []
+    for (model, method), part in cells.groupby(["model", "method"], sort=False):
+        both = part.dropna(subset=["rate_lo", "paper_rate_lo"])
+        if not len(both):
+            continue
+        below = both[both["rate_hi"] < both["paper_rate_lo"]]
+        above = both[both["rate_lo"] > both["paper_rate_hi"]]
+        overlap = len(both) - len(below) - len(above)
+        name = f"`{model}` {method}" if model else method
+        text = (
+            f"{name}: our {LEVEL:.0%} interval of the verified rate overlaps the paper's in "
+            f"{overlap} of {len(both)} cells"
+        )
+        for rows, side in ((below, "below"), (above, "above")):
+            if len(rows):
+                where = "; ".join(_interval_cell(r, conditions) for _, r in rows.iterrows())
+                text += f"; ours lies wholly {side} the paper's in {len(rows)}: {where}"
+        lines.append(text + ".")
+    return lines
+
+
+def _interval_cell(row: pd.Series, conditions: list[str]) -> str:
+    """A cell's name and both intervals: ``m=2 apart κ=1 α=1: 0–66 % against 48–62 %``."""
+    names = []
+    for c in conditions:
+        value = row[c]
+        if c == "overlapping":
+            names.append("overlapping" if bool(value) else "apart")
+        elif c == "m":
+            names.append(f"m={value:g}")
+        else:
+            names.append(f"{value:g}" if isinstance(value, (int, float, np.number)) else str(value))
+    names += [f"κ={row.kappa:g}", f"α={row.alpha:g}"]
+    ours = f"{100 * row.rate_lo:.0f}–{100 * row.rate_hi:.0f} %"
+    paper = f"{100 * row.paper_rate_lo:.0f}–{100 * row.paper_rate_hi:.0f} %"
+    return f"{' '.join(names)}: {ours} against {paper}"
+
+
 _RATE = ("verified_rate", "paper_rate", "Verified rate (allocation method)")
 
 
 def _campaign(table: pd.DataFrame) -> list[str]:
-    """Per model, the readings' comparison with the paper; per model and reading, the
-    counts (the paper's trends follow in a table, :func:`trend_readings`)."""
-    return _per_group(campaign_summary, _RATE)(table)
+    """Whether the table is a smoke test; per model, the readings' comparison with the
+    paper; per model and reading, the counts; per model and method, where our intervals
+    and the paper's overlap (the paper's trends follow in a table,
+    :func:`trend_readings`)."""
+    lines = smoke_test_reading(table) + _per_group(campaign_summary, _RATE)(table)
+    return lines + interval_readings(table)

@@ -6,31 +6,45 @@ certificate's (``status``, ``time``, ``seed_inside``, …). Each table groups re
 its axes and reports, per cell:
 
 * ``instances``, ``seeds_inside`` (seeds whose target-model pose error lies in Ξ) and
-  the counts of ``holds`` / ``violated`` / ``unknown`` and ``violated_at_seed`` (the
-  counterexample is the seed image itself, λ = 0);
+  the counts of ``holds`` / ``violated`` / ``unknown`` / ``not_certifiable`` (the pixel
+  grid alone exceeds the tolerance: the nearest heatmap pixels of the exact keypoints
+  already move the pose out of ε / κ, so no cell certifies the instance at this heatmap
+  resolution) and ``violated_at_seed`` (the counterexample is the seed image itself,
+  λ = 0);
 * ``errors``: instances that could not be certified (status ``error``, e.g. a seed with
   a keypoint outside the heatmap). They count in ``instances`` only: holds + violated +
-  unknown + errors = instances, and every other column is over the other instances;
+  unknown + not_certifiable + errors = instances, and every other column is over the
+  other instances;
 * ``verified_rate`` = holds among the seeds inside Ξ ÷ seeds inside Ξ (paper §8.4; NaN
-  when no seed is inside); ``decided``: the fraction of instances that are ``holds`` or
-  ``violated``; ``capped`` (records that store ``stopped``): instances whose search the
-  time cap ended (their verdict depends on the machine; node budgets decide the others);
-* ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px) and the fraction of
-  coordinates allocated 0 (one-pixel cells);
-* ``time_mean`` ± ``time_std``: verification seconds over all instances of the cell;
+  when no seed is inside; a ``not_certifiable`` seed inside Ξ stays in the denominator),
+  ``verified_rate_lo`` – ``verified_rate_hi``: its 95 % Wilson interval
+  (:func:`kpstudy.study.trends.rate_interval`); ``decided``: the fraction of instances that
+  are ``holds`` or ``violated``; ``capped`` (records that store ``stopped``): instances
+  whose search the time cap ended (their verdict depends on the machine; node budgets
+  decide the others);
+* ``dv_mean``, ``dv_zero``: mean allocated tolerance (heatmap px: integers, or the cells'
+  float half-widths) and the fraction of coordinates allocated 0 (one-pixel cells), over
+  the instances that have cells (not ``not_certifiable``);
+* ``time_mean`` ± ``time_std`` (over the population, ``ddof = 0``), ``time_median`` and
+  the quartiles ``time_q1`` – ``time_q3``: verification seconds over all instances of the
+  cell (the paper's standard deviations exceed its means: the median says more);
   ``time_holds_mean``, ``time_violated_mean`` and ``time_unknown_mean``: over its
   proofs (``holds``), its refutations (``violated``) and its undecided instances
   (``unknown``, a budget spent) only (NaN without any), so that proofs compare with
   proofs;
-* ``paper_rate``, ``paper_time_mean``, ``paper_time_std`` (ModelVerification.jl on an
-  RTX A4000; NaN where the paper has no cell);
+* ``paper_rate`` with ``paper_rate_lo`` – ``paper_rate_hi`` (the 95 % interval its 200
+  seeds imply, :func:`kpstudy.study.trends.paper_interval`), ``paper_time_mean``,
+  ``paper_time_std`` (ModelVerification.jl on an RTX A4000; NaN where the paper has no
+  cell);
 * with the pose-bound method's records (``pb_*``, :mod:`kpstudy.certify.pose_bound_method`):
   ``pb_holds``, ``pb_violated``, ``pb_unknown``, ``pb_decided``, ``pb_capped`` (as ``capped``,
   from ``pb_stopped``), ``pb_seeds_inside`` (seeds whose *argmax* → PnP pose lies in Ξ,
   ``pb_seed_inside``: the pipeline this method certifies; the target model's ``seed_inside``
-  for records from before it was stored), ``pb_verified_rate`` (holds among those ÷ those),
-  ``pb_time_mean`` (and ``pb_time_holds_mean``, ``pb_time_violated_mean``,
-  ``pb_time_unknown_mean`` as above); ``pb_by_witness``, ``pb_by_enumeration``,
+  for records from before it was stored), ``pb_verified_rate`` (holds among those ÷ those)
+  with ``pb_verified_rate_lo`` – ``pb_verified_rate_hi``, ``pb_time_mean`` ±
+  ``pb_time_std``, ``pb_time_median``, ``pb_time_q1`` – ``pb_time_q3`` (and
+  ``pb_time_holds_mean``, ``pb_time_violated_mean``, ``pb_time_unknown_mean`` as above);
+  ``pb_by_witness``, ``pb_by_enumeration``,
   ``pb_by_linearised``: the instances each rule decided (``pb_rule``; records from before it
   was stored were decided by ``'witness'`` when ``violated`` and by ``'linearised'``
   otherwise, and are counted so), with ``pb_enumeration_holds`` the ``holds`` among those by
@@ -49,6 +63,7 @@ import numpy as np
 import pandas as pd
 
 from kpstudy.pose.geometry import POSE_AXES, tolerance
+from kpstudy.study.trends import paper_interval, rate_interval
 
 __all__ = [
     "PAPER_T_GLOBAL",
@@ -136,7 +151,7 @@ PAPER_T_PROB = {
     (2.0, 2.0): (0.999999, 6.67e-7),
 }
 
-_STATUSES = ("holds", "violated", "unknown")
+_STATUSES = ("holds", "violated", "unknown", "not_certifiable")
 _PB_RULES = ("witness", "enumeration", "linearised")  # kpstudy.certify.pose_bound_method's pb_rule
 
 
@@ -174,15 +189,16 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         row["verified_rate"] = (
             float((holds & inside).sum() / inside.sum()) if inside.any() else np.nan
         )
-        row["decided"] = float((cell["status"] != "unknown").mean()) if len(cell) else np.nan
+        row["verified_rate_lo"], row["verified_rate_hi"] = rate_interval(
+            int((holds & inside).sum()), int(inside.sum())
+        )
+        decided = cell["status"].isin(["holds", "violated"])
+        row["decided"] = float(decided.mean()) if len(cell) else np.nan
         if "stopped" in cell:
             row["capped"] = int((cell["stopped"] == "time").sum())
         if "dv" in cell and len(cell):
-            dv = np.concatenate([np.ravel(_list(v)) for v in cell["dv"]])
-            row["dv_mean"] = float(dv.mean())
-            row["dv_zero"] = float(np.mean(dv == 0))
-        row["time_mean"] = float(cell["time"].mean())
-        row["time_std"] = float(cell["time"].std(ddof=0))
+            row["dv_mean"], row["dv_zero"] = _dv(cell)
+        row.update(_times(cell["time"], "time"))
         row["time_holds_mean"] = _mean(cell["time"][holds])
         row["time_violated_mean"] = _mean(cell["time"][cell["status"] == "violated"])
         row["time_unknown_mean"] = _mean(cell["time"][cell["status"] == "unknown"])
@@ -200,7 +216,10 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             row["pb_verified_rate"] = (
                 float((pb & pb_inside).sum() / pb_inside.sum()) if pb_inside.any() else np.nan
             )
-            row["pb_time_mean"] = float(cell["pb_time"].mean())
+            row["pb_verified_rate_lo"], row["pb_verified_rate_hi"] = rate_interval(
+                int((pb & pb_inside).sum()), int(pb_inside.sum())
+            )
+            row.update(_times(cell["pb_time"], "pb_time"))
             row["pb_time_holds_mean"] = _mean(cell["pb_time"][pb])
             row["pb_time_violated_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "violated"])
             row["pb_time_unknown_mean"] = _mean(cell["pb_time"][cell["pb_status"] == "unknown"])
@@ -229,11 +248,12 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         "errors",
         "violated_at_seed",
         "verified_rate",
+        "verified_rate_lo",
+        "verified_rate_hi",
         "decided",
         "dv_mean",
         "dv_zero",
-        "time_mean",
-        "time_std",
+        *_TIME_COLUMNS,
         "time_holds_mean",
         "time_violated_mean",
         "time_unknown_mean",
@@ -247,7 +267,9 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
             "pb_capped",
             "pb_seeds_inside",
             "pb_verified_rate",
-            "pb_time_mean",
+            "pb_verified_rate_lo",
+            "pb_verified_rate_hi",
+            *(f"pb_{c}" for c in _TIME_COLUMNS),
             "pb_time_holds_mean",
             "pb_time_violated_mean",
             "pb_time_unknown_mean",
@@ -262,6 +284,38 @@ def summarise(records: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     if "stopped" in records:
         columns.insert(columns.index("decided") + 1, "capped")
     return pd.DataFrame(rows, columns=columns)
+
+
+#: Per cell, the seconds of all its instances: mean, standard deviation, median, quartiles.
+_TIME_COLUMNS = ("time_mean", "time_std", "time_median", "time_q1", "time_q3")
+
+
+def _times(values: pd.Series, prefix: str) -> dict[str, float]:
+    """``{prefix}_mean``, ``_std`` (``ddof = 0``), ``_median``, ``_q1``, ``_q3`` of the
+    seconds ``values`` (NaN entries left out; all NaN without any)."""
+    values = pd.to_numeric(values, errors="coerce").dropna()
+    if not len(values):
+        return {f"{prefix}{c[4:]}": float("nan") for c in _TIME_COLUMNS}
+    q1, median, q3 = np.quantile(values.to_numpy(np.float64), [0.25, 0.5, 0.75])
+    numbers = (values.mean(), values.std(ddof=0), median, q1, q3)
+    return {f"{prefix}{c[4:]}": float(v) for c, v in zip(_TIME_COLUMNS, numbers)}
+
+
+def _dv(cell: pd.DataFrame) -> tuple[float, float]:
+    """Mean allocated tolerance and the fraction of zero coordinates over the records
+    of ``cell`` that have cells: ``dv`` a list (stored, or JSON text from a CSV) of ints
+    or float half-widths; ``not_certifiable`` records and those without a ``dv`` are left
+    out (NaN, NaN without any)."""
+    parts = []
+    for status, value in zip(cell["status"], cell["dv"]):
+        value = _list(value)
+        if status != "not_certifiable" and isinstance(value, (list, tuple, np.ndarray)):
+            parts.append(np.ravel(np.asarray(value, dtype=np.float64)))
+    dv = np.concatenate(parts) if parts else np.array([])
+    dv = dv[np.isfinite(dv)]
+    if not len(dv):
+        return float("nan"), float("nan")
+    return float(dv.mean()), float(np.mean(dv == 0))
 
 
 def _mean(values: pd.Series) -> float:
@@ -405,6 +459,7 @@ def _level(level: float) -> float:
 def _with_paper(out: pd.DataFrame, paper: dict, key) -> pd.DataFrame:
     values = [paper.get(key(r), (np.nan,) * 3) for r in out.itertuples(index=False)]
     out["paper_rate"] = [v[2] for v in values]
+    out["paper_rate_lo"], out["paper_rate_hi"] = paper_interval(out["paper_rate"])
     out["paper_time_mean"] = [v[0] for v in values]
     out["paper_time_std"] = [v[1] for v in values]
     return out
