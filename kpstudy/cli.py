@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     )
 
     from kpstudy.models.training import CERTIFIED_WEIGHT, TrainConfig
-    from kpstudy.study.campaign import add_arguments
+    from kpstudy.study.campaign import InstanceErrors, add_arguments
 
     default = TrainConfig()
     cmp = sub.add_parser(
@@ -240,6 +240,10 @@ def main(argv=None) -> int:
             _export_benchmark(args, sys.argv[1:] if argv is None else argv)
         else:
             _campaign(args)
+    except InstanceErrors as exc:  # records stored, some of them errors: the count, last
+        sys.stdout.flush()
+        print(f"kpstudy {args.command}: {exc}", file=sys.stderr, flush=True)
+        return 1
     except (
         ValueError,
         FileNotFoundError,
@@ -304,14 +308,17 @@ def _evaluate(args) -> None:
 
 def _campaign(args) -> None:
     """Run a campaign; instances that fail are stored as ``error`` (a line each on stderr)
-    and the rest go on. A store made by another checkpoint, data, settings or code, an
-    unusable ``--store`` / ``--out`` or an unreachable ``--scheduler`` is refused before
-    any work, with nothing written."""
+    and the rest go on; if any of the grid's records is an error, the stored ones are
+    listed too and :class:`~kpstudy.study.campaign.InstanceErrors` ends the command (exit
+    status 1, the count on the last line). An unreadable checkpoint, dataset or
+    perturbation set, a store made by another checkpoint, data, settings or code or held by
+    a running campaign, an unusable ``--store`` / ``--out`` or an unreachable
+    ``--scheduler`` is refused before any work, with nothing written."""
     import pandas as pd
     from tqdm.auto import tqdm
 
     from kpstudy.io import check_output_file, write_table
-    from kpstudy.study.campaign import Settings, grid, run_campaign
+    from kpstudy.study.campaign import InstanceErrors, ResultStore, Settings, grid, run_campaign
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
         check_output_file(Path(f"{args.out}.csv"), "out")
@@ -326,8 +333,11 @@ def _campaign(args) -> None:
         seeds=args.seeds,
     )
 
+    listed = set()
+
     def report(instance, record):
         if record.get("status") == "error":
+            listed.add(instance.key)
             tqdm.write(f"kpstudy campaign: {instance.key}: {record['error']}", file=sys.stderr)
 
     frame = run_campaign(
@@ -348,6 +358,18 @@ def _campaign(args) -> None:
     if "pb_status" in frame and frame["pb_status"].notna().any():
         counts["pose-bound method"] = frame["pb_status"]
     print(pd.DataFrame({k: v.value_counts() for k, v in counts.items()}).fillna(0).astype(int))
+    errors = int((frame["status"] == "error").sum())
+    if errors:
+        stored = ResultStore(args.store).keys()
+        done = [i for i in dict.fromkeys(instances) if i.key in stored]  # frame's rows
+        sys.stdout.flush()
+        for instance, (_, row) in zip(done, frame.iterrows()):
+            if row["status"] == "error" and instance.key not in listed:
+                print(f"kpstudy campaign: {instance.key}: {row['error']}", file=sys.stderr)
+        raise InstanceErrors(
+            f"{errors} of {len(frame)} instances ended 'error' (listed above); rerun them with "
+            "--retry-errors"
+        )
 
 
 def _export_benchmark(args, argv) -> None:

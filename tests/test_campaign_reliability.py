@@ -21,7 +21,7 @@ import torch
 from data_gen.perturb import make_perturbations
 from kpstudy.cli import main
 from kpstudy.models.training import TrainConfig, train
-from kpstudy.study import tables
+from kpstudy.study import campaign, tables
 from kpstudy.study.campaign import ResultStore, Settings, grid, run_campaign
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -311,3 +311,182 @@ def test_campaign_argument_errors_are_one_line_and_write_nothing(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "notes.sqlite"]
     assert (tmp_path / "a_file").read_text() == "not a folder"
     assert (tmp_path / "notes.sqlite").read_text() == NOTES
+
+
+# Issue 65, part 2: an unusable checkpoint, dataset or perturbation set is refused before
+# any work; instances that end 'error' fail the command; one store, one live campaign.
+
+
+def _broken(study, tmp_path, what):
+    """The study's checkpoint and dataset with one input made unusable: (checkpoint, data,
+    the unusable file)."""
+    data, checkpoint, _ = study
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    if what == "checkpoint":
+        bad = inputs / "truncated.pt"
+        whole = checkpoint.read_bytes()
+        bad.write_bytes(whole[: len(whole) // 2])
+        return bad, data, bad
+    copy = inputs / "data"
+    shutil.copytree(data, copy)
+    if what == "annotations":
+        bad = copy / "annotations.json"
+        text = bad.read_text()
+        bad.write_text(text[: len(text) // 2])
+    else:  # the blocks set's seed image of the first seed, which each of its hulls needs
+        meta = json.loads((copy / "perturbations" / "blocks" / "meta.json").read_text())
+        bad = copy / "perturbations" / "blocks" / meta["images"][0]["seed_file"]
+        bad.unlink()
+    return checkpoint, copy, bad
+
+
+@pytest.mark.parametrize(
+    ("what", "name"),
+    [("checkpoint", "checkpoint:"), ("annotations", "data_dir:"), ("perturbed", "data_dir:")],
+)
+def test_an_unusable_input_is_refused_before_the_store_is_made(study, tmp_path, capsys, what, name):
+    checkpoint, data, bad = _broken(study, tmp_path, what)
+    run = tmp_path / "run"
+    status, err = _cli(
+        capsys,
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks", "--alphas", 1e4),
+        *("--ms", 1, "--seeds", 1, "--timeout", 5, "--nodes", 2),
+        *("--store", run / "s.sqlite", "--out", run / "records"),
+    )
+    assert status == 2
+    _one_line(err, name, str(bad))
+    assert not run.exists()
+    settings = _settings(checkpoint, data)
+    with pytest.raises(ValueError, match=f"^{name}"):
+        run_campaign(_instances(data), run / "s.sqlite", settings, progress=False)
+    assert not run.exists()
+
+
+def test_a_campaign_with_error_instances_exits_non_zero_and_lists_them(bad_seed, tmp_path, capsys):
+    data, checkpoint = bad_seed
+    argv = (
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks", "--alphas", 0.5, 1e4),
+        *("--ms", 1, "--timeout", 10, "--nodes", 2, "--check-samples", 0),
+        *("--store", tmp_path / "s.sqlite"),
+    )
+    for _ in ("run", "resume"):  # a resumed campaign reports the stored errors too
+        status, err = _cli(capsys, *argv)
+        assert status == 1, err
+        assert "Traceback" not in err
+        lines = err.strip().splitlines()
+        listed = [line for line in lines[:-1] if f'"image_id": {BAD_IMAGE}' in line]
+        assert len(listed) == 4 and all("ValueError" in line for line in listed), err
+        assert "4 of 8 instances ended 'error'" in lines[-1] and "--retry-errors" in lines[-1]
+    assert len(ResultStore(tmp_path / "s.sqlite").keys(errors=False)) == 4
+
+
+def test_reproduce_exits_non_zero_when_a_campaign_instance_ended_error(tmp_path, capsys):
+    tables = tmp_path / "results" / "quick" / "tables"
+    tables.mkdir(parents=True)
+    records = pd.DataFrame(
+        {
+            "kind": ["objects", "objects"],
+            "image_id": [9, BAD_IMAGE],
+            "alpha": [1.0, 1.0],
+            "kappa": [1.0, 1.0],
+            "m": [2, 2],
+            "overlapping": [False, False],
+            "model": ["cnn", "cnn"],
+            "tolerance_units": ["heatmap", "heatmap"],
+            "status": ["holds", "error"],
+            "error": [None, "ValueError: keypoint 0 outside the image"],
+        }
+    )
+    records.to_csv(tables / "t_local_records.csv", index=False)
+    try:
+        status = main(["reproduce", "--out", str(tmp_path / "results"), "--stages", "report"])
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    assert status == 1, captured.err
+    assert "Traceback" not in captured.err
+    assert f"image {BAD_IMAGE}" in captured.out and "keypoint 0 outside" in captured.out
+    last = captured.err.strip().splitlines()[-1]
+    assert "1 of 2 campaign instances ended 'error'" in last and "t_local_records.csv" in last
+    assert (tmp_path / "results" / "quick" / "REPORT.md").is_file()  # the report is written
+
+
+HOLDER = """
+import sys, threading
+from pathlib import Path
+from kpstudy.study import campaign
+from kpstudy.study.campaign import Settings, grid, run_campaign
+
+data, checkpoint, store, marker, code = sys.argv[1:]
+# The test's code fingerprint: an edit to the tree while the tests run changes nothing here.
+campaign.source_fingerprint = lambda: code
+instances = grid(data, "blocks", alphas=[0.5, 1e4], kappas=[1.0], ms=[1], overlapping=[False])
+settings = Settings(checkpoint, data, timeout=10, check_samples=0, nodes=2)
+seen = []
+
+def hold(instance, record):
+    seen.append(instance)
+    if len(seen) == 2:  # the first hull is stored: hold the store until killed
+        Path(marker).write_text("holding")
+        threading.Event().wait()
+
+run_campaign(instances, store, settings, progress=False, on_record=hold)
+"""
+
+
+def _records(frame):
+    """The records without their timings, as comparable text."""
+    return frame.drop(columns=["time", "total_time"]).to_json(orient="records")
+
+
+def test_one_store_takes_one_live_campaign_and_a_killed_one_resumes_exactly(
+    study, tmp_path, capsys
+):
+    data, checkpoint, _ = study
+    instances = _instances(data)  # two hulls of two cells each
+    settings = _settings(checkpoint, data, nodes=2)
+    straight = run_campaign(instances, tmp_path / "straight.sqlite", settings, progress=False)
+    assert len(straight) == 4
+    store, marker, log = tmp_path / "s.sqlite", tmp_path / "holding", tmp_path / "holder.err"
+    code = campaign.source_fingerprint()
+    with open(log, "wb") as err:
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLDER, *map(str, (data, checkpoint, store, marker, code))],
+            cwd=ROOT,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
+    try:
+        deadline = time.monotonic() + 300  # importing torch on a busy machine
+        while not marker.exists() and holder.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert marker.exists(), log.read_text()[-2000:]
+        assert len(ResultStore(store).keys()) == 2
+
+        # A second campaign on the store, in this process and from the command line.
+        with pytest.raises(ValueError, match=r"^store: .* is in use by a running campaign"):
+            run_campaign(instances, store, settings, progress=False)
+        status, err = _cli(
+            capsys,
+            *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks"),
+            *("--alphas", 0.5, 1e4, "--ms", 1, "--timeout", 10, "--check-samples", 0),
+            *("--nodes", 2, "--store", store),
+        )
+        assert status == 2
+        _one_line(err, "store:", str(store), "in use")
+        assert len(ResultStore(store).keys()) == 2
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(30)
+
+    # The killed campaign's store resumes: the rest is computed, the records are the
+    # uninterrupted run's.
+    computed = []
+    resumed = run_campaign(
+        instances, store, settings, progress=False, on_record=lambda i, r: computed.append(i)
+    )
+    assert len(computed) == 2
+    assert _records(resumed) == _records(straight)
+    assert sorted(p.name for p in tmp_path.glob("s.sqlite*")) == ["s.sqlite"]

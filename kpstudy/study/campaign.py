@@ -11,13 +11,23 @@ computes only what is missing. Instances run in the calling process (default,
 
 Reliability:
 
+* The checkpoint, the dataset (its annotations and test images) and the perturbation
+  sets the instances use are loaded and checked once, before the store is opened: one
+  that cannot be read is refused with a one-line ``ValueError`` naming the file, and
+  nothing is written (not an ``'error'`` record per instance).
 * A store records what made it (:func:`provenance`: the checkpoint's bytes, the dataset's
   annotations and perturbation sets, the other settings, the code) and refuses, with a
   one-line ``ValueError`` naming ``store``, a campaign of another provenance: records of
   another model, dataset, settings or code never mix. The file is created with the first
   record, so that refused arguments leave nothing behind.
+* One store, one running campaign: a campaign holds an exclusive lock on its store
+  (:class:`_StoreLock`, ``fcntl.flock`` on ``<store>.lock``) while it runs, and a second
+  one on the same store is refused with a one-line ``ValueError`` naming ``store``. The
+  operating system drops the lock of a process that dies, even by SIGKILL, so a killed
+  campaign's store resumes at once.
 * An instance that raises (a seed that cannot be certified, …) is stored with status
-  ``'error'`` and its message; the campaign goes on.
+  ``'error'`` and its message; the campaign goes on. The command line lists such
+  instances and exits with status 1 (:class:`InstanceErrors`).
 * Local worker processes die with the campaign: they exit when their parent does
   (``PR_SET_PDEATHSIG`` on Linux, and a thread watching the parent's pid), and SIGTERM
   to the campaign's process stops them before it exits (status 143).
@@ -31,6 +41,7 @@ import hashlib
 import json
 import os
 import signal
+import socket
 import sqlite3
 import sys
 import threading
@@ -49,6 +60,7 @@ from kpstudy.io import check_output_file, source_fingerprint
 
 __all__ = [
     "Instance",
+    "InstanceErrors",
     "ResultStore",
     "Settings",
     "grid",
@@ -60,6 +72,12 @@ __all__ = [
 
 GLOBAL_KINDS = ("brightness", "contrast")
 LOCAL_KINDS = ("objects", "blocks")
+
+
+class InstanceErrors(Exception):
+    """Some instances of a run ended with status ``'error'`` (their records are stored).
+    The command line (``campaign``, ``reproduce``) ends with its message, one line with the
+    count, and exit status 1."""
 
 
 @dataclass(frozen=True)
@@ -465,10 +483,13 @@ def run_campaign(
     ----------
     instances : list of Instance
     store : ResultStore or path
-        Opened with this campaign's :func:`provenance`: a store made by another is refused
-        (``ValueError`` naming ``store``) before any work; a new one is created with the
-        first record.
+        Opened with this campaign's :func:`provenance`: a store made by another, or one that
+        a running campaign holds, is refused (``ValueError`` naming ``store``) before any
+        work; a new one is created with the first record.
     settings : Settings
+        Its checkpoint, dataset and the instances' perturbation sets are loaded once
+        before the store is opened; one that cannot be read is refused (``ValueError``
+        naming ``checkpoint`` or ``data_dir`` and the file).
     workers : int
         Local worker processes (1: this process), each with ``cpu_count // workers`` torch
         threads. Ignored with ``scheduler``. A worker (or Dask task) takes one hull's
@@ -493,29 +514,133 @@ def run_campaign(
         message) and ``total_time`` (s) only.
     """
     campaign = _Campaign.open(instances, store, settings, retry_errors)
-    _execute(
-        [campaign], workers=workers, scheduler=scheduler, progress=progress, on_record=on_record
-    )
+    try:
+        _execute(
+            [campaign], workers=workers, scheduler=scheduler, progress=progress, on_record=on_record
+        )
+    finally:
+        campaign.close()
     return campaign.store.frame(instances)
 
 
 @dataclass
 class _Campaign:
-    """One campaign's store, settings and the instances it still lacks."""
+    """One campaign's store, settings, the instances it still lacks and the lock it holds
+    on the store (:meth:`close` lets it go)."""
 
     store: ResultStore
     settings: Settings
     missing: list[Instance]
+    lock: _StoreLock | None = None
 
     @classmethod
     def open(cls, instances, store, settings: Settings, retry_errors: bool = False) -> _Campaign:
-        """Check the settings and open the store with their provenance (a store made by
-        another is refused here, before any work)."""
+        """Check the settings and the inputs (:func:`_check_inputs`), open the store with
+        their provenance and lock it: a store made by another campaign, or held by a running
+        one, is refused here, before any work."""
         _check_settings(settings)
+        instances = list(dict.fromkeys(instances))
+        _check_inputs(settings, instances)
         path = store.path if isinstance(store, ResultStore) else store
         store = ResultStore(path, provenance(settings))
-        done = store.keys(errors=not retry_errors)
-        return cls(store, settings, [i for i in dict.fromkeys(instances) if i.key not in done])
+        lock = _StoreLock(store.path) if instances else None
+        try:
+            done = store.keys(errors=not retry_errors)
+        except BaseException:
+            if lock is not None:
+                lock.release()
+            raise
+        return cls(store, settings, [i for i in instances if i.key not in done], lock)
+
+    def close(self) -> None:
+        """Let the store's lock go (nothing when it has none)."""
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
+
+
+class _StoreLock:
+    """The exclusive lock of a running campaign on its store: ``fcntl.flock`` on the file
+    ``<store>.lock`` beside it, taken without waiting; a store that another campaign holds
+    is refused (``ValueError`` naming ``store`` and the holder's pid, host and start).
+
+    Why a lock and not claims of instances with leases in the store: the operating system
+    drops a flock when its process dies, however it dies (SIGKILL, a crash, a lost
+    machine's NFS lease), so there is no lease to renew, no clock to trust and no dead
+    holder to detect; a second campaign has nothing to add that ``workers`` or a Dask
+    ``scheduler`` would not, so refusing it loses nothing. The file holds the holder's
+    pid, host and start time (for the refusal's message only) and is removed when the
+    campaign ends, with the folders made for it if the store was not written (refused
+    arguments leave nothing behind); one that a killed campaign left behind is taken
+    over. On a file system without flock (some network mounts) or a system without
+    ``fcntl`` the store is not locked.
+    """
+
+    def __init__(self, store: Path) -> None:
+        self.store = Path(store)
+        self.path = self.store.with_name(self.store.name + ".lock")
+        self.fd = None
+        try:
+            import fcntl
+        except ImportError:  # no flock here: campaigns on one store are not kept apart
+            return
+        self.made = [p for p in self.path.parents if not p.exists()]  # deepest first
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"store: cannot create {self.path.parent} ({exc})") from exc
+        while True:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise ValueError(f"store: cannot lock {store} ({self.path}: {exc})") from exc
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = self._holder(fd)
+                os.close(fd)
+                raise ValueError(
+                    f"store: {store} is in use by a running campaign{holder}; wait for it "
+                    "to end, or use another store"
+                ) from None
+            except OSError:  # no flock on this file system
+                os.close(fd)
+                return
+            try:  # the holder before may have removed the file as it ended: lock the new one
+                current = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                current = False
+            if current:
+                break
+            os.close(fd)
+        self.fd = fd
+        since = time.strftime("%Y-%m-%d %H:%M:%S")
+        holder = {"pid": os.getpid(), "host": socket.gethostname(), "since": since}
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps(holder).encode())
+
+    @staticmethod
+    def _holder(fd: int) -> str:
+        """`` (pid …, host …, since …)`` from a held lock file, or nothing."""
+        try:
+            holder = json.loads(os.pread(fd, 4096, 0))
+            return f" (pid {holder['pid']} on {holder['host']} since {holder['since']})"
+        except (OSError, ValueError, KeyError, TypeError):
+            return ""
+
+    def release(self) -> None:
+        """Remove the lock file, then let the lock go (in this order, so that a campaign
+        that opened the old file retries on a new one)."""
+        if self.fd is None:
+            return
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+        os.close(self.fd)
+        self.fd = None
+        if not self.store.exists():
+            for folder in self.made:  # empty unless another campaign wrote there meanwhile
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
 
 
 def _execute(
@@ -535,6 +660,8 @@ def _execute(
         raise ValueError(f"scheduler: expected a Dask scheduler address, got {scheduler!r}")
     tasks = [(c, group) for c in campaigns for group in _by_hull(c.missing)]
     tasks.sort(key=lambda task: -(task[0].settings.pose_bound_timeout or 0.0))
+    if scheduler is not None or workers > 1:  # what _check_inputs loaded is not used here
+        _context.cache_clear()
     client = _client(scheduler) if scheduler is not None and tasks else None
     bar = tqdm(
         total=sum(len(g) for _, g in tasks), desc="instances", unit="inst", disable=not progress
@@ -700,18 +827,22 @@ def run_study(
     if not readings:
         raise ValueError("tolerance_units: expected one or more readings, got none")
     campaigns, labels = [], []
-    for model, checkpoint in checkpoints.items():
-        for units in readings:
-            extra = (pose_bound or {}).get(model, {}) if units == readings[0] else {}
-            config = Settings(
-                str(checkpoint), str(data_dir), tolerance_units=units, **settings, **extra
-            )
-            for kind in kinds:
-                instances = grid(data_dir, kind, **grid_options)
-                store = store_path(folder, kind, config)
-                campaigns.append((_Campaign.open(instances, store, config), instances))
-                labels.append(dict(model=model, tolerance_units=units))
-    _execute([c for c, _ in campaigns], workers=workers, scheduler=scheduler, progress=progress)
+    try:
+        for model, checkpoint in checkpoints.items():
+            for units in readings:
+                extra = (pose_bound or {}).get(model, {}) if units == readings[0] else {}
+                config = Settings(
+                    str(checkpoint), str(data_dir), tolerance_units=units, **settings, **extra
+                )
+                for kind in kinds:
+                    instances = grid(data_dir, kind, **grid_options)
+                    store = store_path(folder, kind, config)
+                    campaigns.append((_Campaign.open(instances, store, config), instances))
+                    labels.append(dict(model=model, tolerance_units=units))
+        _execute([c for c, _ in campaigns], workers=workers, scheduler=scheduler, progress=progress)
+    finally:
+        for c, _ in campaigns:
+            c.close()
     frames = [c.store.frame(i).assign(**label) for (c, i), label in zip(campaigns, labels)]
     return pd.concat(frames, ignore_index=True)
 
@@ -798,6 +929,7 @@ def _context(checkpoint: str, data_dir: str):
     def seed_of(image_id: int) -> SeedImage:
         return SeedImage.from_keypoint_set(test, index[image_id])
 
+    seed_of.image_ids = frozenset(index)
     return backbone, seed_of
 
 
@@ -880,6 +1012,56 @@ def _check_settings(settings: Settings) -> None:
             f"pose_bound_method: expected one of {REGION_METHODS}, "
             f"got {settings.pose_bound_method!r}"
         )
+
+
+def _check_inputs(settings: Settings, instances: list[Instance]) -> None:
+    """Load and check, once, what every instance reads: the checkpoint and the dataset's
+    test split, annotations and images (:func:`_context`, which this process then reuses
+    when it runs the instances itself), and the perturbation set of each kind among
+    ``instances`` (its ``meta.json``, and the files of their seed images). One that cannot
+    be read raises a one-line ``ValueError`` naming ``checkpoint`` or ``data_dir`` (or
+    ``kind``, for a set's ``meta.json``) and the file."""
+    from data_gen.perturb import load_perturbations
+
+    data = settings.data_dir
+    try:
+        _, seed_of = _context(settings.checkpoint, data)
+    except ValueError as exc:  # load_checkpoint and load_keypoint_set name what they read
+        raise ValueError(_one_line(exc)) from exc
+    except Exception as exc:  # noqa: BLE001 - an image that cannot be read, …
+        raise ValueError(
+            f"data_dir: cannot read the test split of {data} ({_one_line(exc)})"
+        ) from exc
+    for kind in dict.fromkeys(i.kind for i in instances):
+        ids = {i.image_id for i in instances if i.kind == kind}
+        folder = Path(data, "perturbations", kind)
+        try:
+            rows = [r for r in load_perturbations(data, kind)["images"] if r["image_id"] in ids]
+            files = [folder / r[name] for r in rows for name in ("file", "seed_file") if name in r]
+        except (KeyError, TypeError) as exc:
+            raise ValueError(
+                f"data_dir: {folder / 'meta.json'} is not a data_gen perturbation set "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
+        except ValueError as exc:
+            raise ValueError(_one_line(exc)) from exc
+        for path in files:
+            if not path.is_file() or not path.stat().st_size:
+                raise ValueError(
+                    f"data_dir: {path} of the {kind} perturbation set is missing or empty; "
+                    "make the set again (python -m data_gen perturb)"
+                )
+        strangers = sorted(ids - seed_of.image_ids)
+        if strangers:
+            raise ValueError(
+                f"data_dir: the {kind} set's seed images {strangers} are not test images of "
+                f"{data} (a perturbation set of another dataset?)"
+            )
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line."""
+    return " ".join(line.strip() for line in str(exc).splitlines()) or type(exc).__name__
 
 
 def _positive_list(values, name: str) -> list[float]:

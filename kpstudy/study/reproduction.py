@@ -297,7 +297,10 @@ def reproduce(
 ) -> Path:
     """Run ``stages`` of the profile and return its results folder ``out_root/<name>``
     (``retrain_friendly``: train the verification-friendly CNN even where the shipped
-    checkpoint fits)."""
+    checkpoint fits). When the notebooks or the report ran and a campaign's records
+    there hold instances that ended ``'error'``, every stage still runs; then they are
+    printed and :class:`kpstudy.study.campaign.InstanceErrors` is raised with their count
+    (:func:`campaign_errors`)."""
     prof = profile(prof) if isinstance(prof, str) else prof
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
@@ -321,7 +324,46 @@ def reproduce(
             write_report(out, asdict(prof))
         timings[stage] = round(time.perf_counter() - start, 1)
         print(f"[reproduce] {stage}: {timings[stage]} s", flush=True)
+    if {"notebooks", "report"} & set(stages):
+        campaign_errors(out)
     return out
+
+
+def campaign_errors(out: Path) -> None:
+    """Print the campaign instances of the tables' records under ``out/tables`` that
+    ended ``'error'``, a line each, and raise :class:`kpstudy.study.campaign.InstanceErrors`
+    with their count; nothing when there are none."""
+    import pandas as pd
+
+    from kpstudy.study.campaign import InstanceErrors
+    from kpstudy.study.table_runs import TABLES
+
+    errors, total, files = [], 0, []
+    for name in TABLES:
+        path = Path(out) / "tables" / f"{name}_records.csv"
+        if not path.is_file():
+            continue
+        records = pd.read_csv(path)
+        total += len(records)
+        failed = records[records["status"] == "error"] if "status" in records else records[:0]
+        if len(failed):
+            files.append(str(path))
+        for _, row in failed.iterrows():
+            what = [name, row.get("model"), row.get("tolerance_units"), row.get("kind")]
+            what.append(f"image {row.get('image_id')}")
+            for column, label in (("alpha", "α"), ("kappa", "κ"), ("m", "m"), ("level", "level")):
+                if pd.notna(row.get(column)):
+                    what.append(f"{label}={row[column]:g}")
+            if pd.notna(row.get("overlapping")):
+                what.append("overlapping" if row["overlapping"] else "non-overlapping")
+            words = " ".join(str(w) for w in what if isinstance(w, str) or pd.notna(w))
+            errors.append(f"[reproduce] error: {words}: {row.get('error')}")
+    if errors:
+        print("\n".join(errors), flush=True)
+        raise InstanceErrors(
+            f"{len(errors)} of {total} campaign instances ended 'error' (listed above; their "
+            f"records: {', '.join(files)}); the results in {out} are incomplete"
+        )
 
 
 def is_timing(column: str) -> bool:
