@@ -11,15 +11,49 @@ from pathlib import Path
 
 
 def interrupted(prog: str) -> int:
-    """Answer Ctrl-C (SIGINT): close the open progress bars (each ends its own line, so
-    the message starts on a fresh one), write ``<prog>: interrupted`` on stderr and return
-    130 (128 + SIGINT, as a shell reports it)."""
+    """Answer Ctrl-C (SIGINT), called while its ``KeyboardInterrupt`` is handled: end the
+    progress bars' lines, write ``<prog>: interrupted`` on stderr at the start of a line of
+    its own and return 130 (128 + SIGINT, as a shell reports it).
+
+    An open bar is closed (tqdm draws its last state and ends the line, or clears it). Two
+    bars whose ``close`` would leave the line open get the line end themselves: one that
+    Ctrl-C stopped while it drew its first state (it has no start time yet, so ``close``
+    takes it for never shown) and one that Ctrl-C stopped inside its own ``close``, between
+    its last state and its line end (it is closed already)."""
     from tqdm import tqdm
 
-    for bar in list(getattr(tqdm, "_instances", ())):
-        bar.close()
+    with tqdm.get_lock():
+        cut = [bar for bar in _closing_bars(sys.exc_info()[2]) if bar.disable]
+        for bar in list(getattr(tqdm, "_instances", ())):
+            if bar.disable:
+                continue
+            if hasattr(bar, "start_t"):
+                bar.close()
+                continue
+            if hasattr(bar, "sp"):  # its screen printer exists: its first state may show
+                cut.append(bar)
+            try:
+                bar.close()  # only forgets it: tqdm saw no start time
+            except AttributeError:  # stopped between its two clock readings
+                pass
+        for bar in cut:
+            bar.fp.write("\n")
+            bar.fp.flush()
     print(f"{prog}: interrupted", file=sys.stderr, flush=True)
     return 130
+
+
+def _closing_bars(tb) -> list:
+    """The tqdm bars whose ``close`` the traceback ``tb`` passes through."""
+    from tqdm import tqdm
+
+    bars = []
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code is tqdm.close.__code__:
+            bars.append(frame.f_locals.get("self"))
+        tb = tb.tb_next
+    return [bar for bar in bars if isinstance(bar, tqdm)]
 
 
 def _interruptible(run):

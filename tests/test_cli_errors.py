@@ -4,12 +4,15 @@ kernels run over IPC, so ``make reproduce`` prints no IPKernel eavesdropping war
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import select
 import shutil
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import torch
@@ -173,30 +176,55 @@ def test_verify_refuses_a_hull_of_another_dtype_than_the_model():
         verify(net, hull, ArgmaxSpec([3, 3], [0, 0]), timeout=5)
 
 
+#: Seconds the Ctrl-C test waits for the CLI's progress bar and then for its exit. They
+#: only end a hung run: a busy machine takes seconds, so the verdict never depends on speed.
+HANG = 600
+
+
+def read_until(fd: int, mark: bytes | None, deadline: float) -> bytes:
+    """What the pipe ``fd`` gives until ``mark`` is in it (``None``: until its end), read
+    unbuffered (``communicate`` would lose what a buffered reader held back); fails at
+    ``deadline`` (``time.monotonic``)."""
+    got = b""
+    while mark is None or mark not in got:
+        if not select.select([fd], [], [], max(0.0, deadline - time.monotonic()))[0]:
+            what = "end" if mark is None else repr(mark)
+            pytest.fail(f"no {what} on the pipe within {HANG} s (a hang); so far {got!r}")
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            if mark is None:
+                break
+            pytest.fail(f"the CLI ended before its progress bar ({mark!r}) was drawn: {got!r}")
+        got += chunk
+    return got
+
+
 def interrupt(module: str, *args) -> subprocess.CompletedProcess:
-    """Run the CLI, press Ctrl-C (SIGINT to its whole process group, as a terminal does)
-    once its progress bar is on stderr (the work has begun; anything written before it,
-    such as a first run's warning, is not the signal)."""
+    """Run the CLI, wait on its stderr until its progress bar has drawn (``%|``: the work
+    has begun; anything written before it, such as a first run's warning, is not the
+    signal), then press Ctrl-C (SIGINT to its whole process group, as a terminal does)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", module, *map(str, args)],
-        stdout=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        bufsize=0,
         start_new_session=True,
         # as in a terminal: a shell's background job (CI started with `&`) ignores SIGINT,
         # and Python then installs no KeyboardInterrupt handler
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
+    deadline = time.monotonic() + HANG
     try:
-        first = b""
-        while b"%|" not in first and proc.poll() is None:
-            first += proc.stderr.read(1)
+        err = read_until(proc.stderr.fileno(), b"%|", deadline)
         os.killpg(proc.pid, signal.SIGINT)
-        out, err = proc.communicate(timeout=120)
+        err += read_until(proc.stderr.fileno(), None, deadline)
+        proc.wait(timeout=max(1.0, deadline - time.monotonic()))
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, (first + err).decode())
+        proc.stderr.close()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, None, err.decode())
 
 
 @pytest.mark.parametrize(
@@ -218,7 +246,86 @@ def test_ctrl_c_exits_130_with_one_line(tiny_dataset, tmp_path, module, args, li
     proc = interrupt(module, *args)
     assert proc.returncode == 130, proc.stderr
     assert "Traceback" not in proc.stderr
-    assert proc.stderr.splitlines()[-1] == line
+    assert screen(proc.stderr)[-1] == line, proc.stderr
+
+
+def screen(text: str) -> list[str]:
+    """The lines a terminal shows for ``text``: ``\\r`` returns to column 0, what follows
+    overwrites the line from there, ``\\n`` starts a new line; trailing blanks dropped."""
+    lines = [[]]
+    column = 0
+    for char in text:
+        if char == "\n":
+            lines.append([])
+            column = 0
+        elif char == "\r":
+            column = 0
+        else:
+            line = lines[-1]
+            line[column : column + 1] = [char]
+            column += 1
+    shown = ["".join(line).rstrip() for line in lines]
+    while shown and not shown[-1]:
+        shown.pop()
+    return shown
+
+
+def test_screen_shows_what_a_terminal_shows():
+    assert screen("bar  10%|#\rbar 100%|##\nok\n") == ["bar 100%|##", "ok"]
+    assert screen("bar   0%|  | 0/4\rprog: stopped\n") == ["prog: stopped0/4"]
+
+
+class Terminal(io.StringIO):
+    """stderr as a file that raises ``KeyboardInterrupt`` (Ctrl-C) at the first write that
+    ``ctrl_c(text)`` picks, after writing it when ``written``."""
+
+    def __init__(self, ctrl_c=lambda text: False, written=True):
+        super().__init__()
+        self.ctrl_c, self.written = ctrl_c, written
+
+    def write(self, text):
+        if self.ctrl_c(text):
+            self.ctrl_c = lambda text: False
+            if self.written:
+                super().write(text)
+            raise KeyboardInterrupt
+        return super().write(text)
+
+    def isatty(self):
+        return True
+
+
+def first_state(text):
+    return "%|" in text
+
+
+@pytest.mark.parametrize(
+    "moment, ctrl_c, written",
+    [
+        pytest.param("first state", first_state, True, id="while-the-bar-draws-its-first-state"),
+        pytest.param("close", lambda text: text == "\n", False, id="in-close-before-its-line-end"),
+        pytest.param("during the loop", lambda text: False, True, id="during-the-loop"),
+    ],
+)
+def test_ctrl_c_starts_its_line_whenever_it_comes(monkeypatch, moment, ctrl_c, written):
+    """Ctrl-C at any moment of a bar's life: the message is a line of its own (each moment
+    made here, not raced for)."""
+    from tqdm import tqdm
+
+    from kpstudy.cli import interrupted
+
+    stderr = Terminal(ctrl_c, written)
+    monkeypatch.setattr(sys, "stderr", stderr)
+    try:
+        for _ in tqdm(range(3), desc="epoch 1/5"):
+            if moment == "during the loop":
+                raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        assert interrupted("prog") == 130
+    shown = screen(stderr.getvalue())
+    assert shown[-1] == "prog: interrupted", stderr.getvalue()
+    assert all(line.startswith("epoch 1/5:") for line in shown[:-1]), stderr.getvalue()
+    assert not getattr(tqdm, "_instances", ())
 
 
 def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
