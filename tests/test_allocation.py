@@ -395,3 +395,117 @@ def test_allocate_many_in_processes_equals_one_by_one():
     bad = [*problems[:19], (np.full((6, 46), np.nan), [10.0] * 3, [4.0, 4.0, 20.0])]
     with pytest.raises(ValueError, match="^M"):
         allocation.allocate_many(bad, workers=2, max_dv=64)
+
+
+# --- cells around the exact keypoint (allocate_cells) -------------------------------------
+
+
+def cell_brute_force(M, f, eps, kappa, w1, w2, below_max, above_max, every=False):
+    """Best objective and its points over every integer (l, h) within the caps whose every
+    pixel deviation ``p − x`` keeps ``κ |M δ| ≤ ε`` (pixels enumerated one by one); with
+    ``every``, all such points."""
+    n = M.shape[1]
+    caps = np.concatenate([below_max, above_max])
+    X = np.indices([int(c) + 1 for c in caps]).reshape(2 * n, -1).T
+    best, points = -np.inf, []
+    for x in X:
+        lo, hi = x[:n], x[n:]
+        # Largest and smallest M δ over the pixels, coordinate by coordinate.
+        errors = [np.outer(M[:, j], np.arange(-lo[j], hi[j] + 1) - f[j]) for j in range(n)]
+        top = sum(e.max(axis=1) for e in errors)  # (6,): each coordinate's worst pixel
+        low = sum(e.min(axis=1) for e in errors)
+        if np.all(kappa * np.maximum(top, -low) <= eps):
+            if every:
+                points.append(x)
+                continue
+            J = w1 * 0.5 * np.log(2.0 * x + 1.0).sum() + w2 * x.min()
+            if J > best + 1e-12:
+                best, points = J, [x]
+            elif J > best - 1e-12:
+                points.append(x)
+    return best, points
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_cells_are_sound_maximal_and_best_among_symmetric_ones(seed):
+    rng = np.random.default_rng(4100 + seed)
+    K = 1
+    M = random_M(rng, K)
+    f = rng.uniform(-0.5, 0.5, 2 * K)
+    below_max, above_max = rng.integers(0, 4, 2 * K), rng.integers(0, 4, 2 * K)
+    eps = np.abs(M) @ (below_max + above_max + 1.0) * rng.uniform(0.1, 0.6, 6) + 1e-6
+    kappa, w2 = float(rng.choice([1.0, 1.5])), float(rng.choice([0.0, 5.0]))
+    a = allocation.allocate_cells(
+        M, f.reshape(K, 2), eps[:3], eps[3:], kappa, 1.0, w2,
+        max_below=below_max.reshape(K, 2), max_above=above_max.reshape(K, 2),
+    )  # fmt: skip
+    _, points = cell_brute_force(M, f, eps, kappa, 1.0, w2, below_max, above_max)
+    if not points:  # no cell holding the nearest pixel keeps the bound
+        assert not a.feasible and np.any(kappa * np.abs(M @ f) > eps * (1 - 1e-9))
+        return
+    assert a.feasible
+    x = np.concatenate([a.below.ravel(), a.above.ravel()])
+    good = {tuple(p) for p in cell_brute_force(M, f, eps, kappa, 1.0, 0.0, below_max, above_max,
+                                               every=True)[1]}  # fmt: skip
+    assert tuple(x) in good  # every pixel checked one by one
+    for j in range(x.size):  # maximal: no cell can take one more pixel
+        y = x.copy()
+        y[j] += 1
+        assert tuple(y) not in good or y[j] > np.r_[below_max, above_max][j]
+    # It grew from the best cells symmetric about the nearest pixel: every δ whose cells
+    # [c − δ, c + δ] keep the bound (pixels past the border counted) has J at most theirs.
+    sym_J = []
+    for d in (
+        np.indices([int(max(b, c)) + 1 for b, c in zip(below_max, above_max)]).reshape(2 * K, -1).T
+    ):
+        top = sum(np.max(np.outer(M[:, j], np.arange(-d[j], d[j] + 1) - f[j]), axis=1)
+                  for j in range(2 * K))  # fmt: skip
+        low = sum(np.min(np.outer(M[:, j], np.arange(-d[j], d[j] + 1) - f[j]), axis=1)
+                  for j in range(2 * K))  # fmt: skip
+        if np.all(kappa * np.maximum(top, -low) <= eps * (1 - 1e-9)):
+            sym_J.append(np.log(2.0 * d + 1.0).sum() + w2 * d.min())
+    assert a.symmetric.objective == pytest.approx(max(sym_J), abs=1e-9)
+    assert np.all(kappa * a.error <= eps)
+
+
+def test_cells_of_a_centred_keypoint_are_the_paper_box():
+    """With the exact keypoint on a pixel the cells are the symmetric tolerances' boxes."""
+    rng = np.random.default_rng(77)
+    M = random_M(rng, 3)
+    box = allocate_tolerances(M, EPS_R, EPS_T, max_dv=20)
+    cells = allocation.allocate_cells(
+        M, np.zeros((3, 2)), EPS_R, EPS_T, max_below=np.full((3, 2), 20),
+        max_above=np.full((3, 2), 20),
+    )  # fmt: skip
+    assert np.array_equal(cells.symmetric.dv, box.dv)  # no offset: the same problem
+    assert np.all(cells.below >= box.dv) and np.all(cells.above >= box.dv)
+    assert np.all(cells.error <= np.r_[EPS_R, EPS_T])
+
+
+def test_cells_refuse_when_the_pixel_grid_alone_exceeds_the_tolerance():
+    M = np.vstack([np.full((3, 2), 30.0), np.full((3, 2), 1.0)])  # 30° per pixel
+    a = allocation.allocate_cells(
+        M, [[0.4, 0.0]], EPS_R, EPS_T, max_below=[[5, 5]], max_above=[[5, 5]]
+    )
+    assert not a.feasible and a.symmetric is None
+    assert a.error[0] == pytest.approx(12.0) and np.all(a.below == 0) and np.all(a.above == 0)
+    ok = allocation.allocate_cells(
+        M, [[0.3, 0.0]], EPS_R, EPS_T, max_below=[[5, 5]], max_above=[[5, 5]]
+    )
+    assert ok.feasible and ok.error[0] == pytest.approx(9.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(offsets=[[0.7, 0.0]]), "^offsets: expected values in"),
+        (dict(offsets=[[0.0, 0.0], [0.0, 0.0]]), "^offsets: expected"),
+        (dict(max_below=[[-1, 0]]), "^max_below: expected non-negative integers"),
+        (dict(max_above=[[1.5, 0]]), "^max_above: expected non-negative integers"),
+    ],
+)
+def test_cells_bad_arguments_are_named(kwargs, message):
+    M = random_M(np.random.default_rng(3), 1)
+    args = dict(offsets=[[0.0, 0.0]], max_below=[[2, 2]], max_above=[[2, 2]]) | kwargs
+    with pytest.raises(ValueError, match=message):
+        allocation.allocate_cells(M, eps_r=EPS_R, eps_t=EPS_T, **args)

@@ -11,7 +11,6 @@ from data_gen.perturb import hull_vertices, make_perturbations
 from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
 from kpstudy.certify.pose_bound_method import argmax_outside
 from kpstudy.models.data import load_keypoint_set
-from kpstudy.models.preprocess import scale_factors
 from kpstudy.models.training import TrainConfig, load_checkpoint, train
 from kpstudy.pose.allocation import allocate_tolerances
 from kpstudy.pose.geometry import EPS_R, EPS_T
@@ -54,7 +53,9 @@ def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
         backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=16
     )
     assert record["status"] == "holds"
-    assert np.all(np.asarray(record["dv"]) == 64)
+    lo, hi = np.asarray(record["cells"])  # each keypoint's cell is the whole heatmap
+    assert np.all(lo == 0) and np.all(hi == 63) and np.all(np.asarray(record["dv"]) == 31.5)
+    assert record["first_order"] <= 1.0
     assert record["group_status"] == ["holds"] * 23
     assert record["empirical_samples"] == 16
     assert 0.0 <= record["empirical_inside"] <= 1.0
@@ -91,14 +92,19 @@ def test_the_paper_reading_allocates_per_image_pixel_and_measures_its_price(stud
     paper = build_instance(backbone, vertices, seed, alpha=1.5, tolerance_units="paper")
     P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), seed.K
     R, t = heatmap.R, heatmap.t
-    for instance, scale in ((heatmap, scale_factors(seed.image_size, 64)), (paper, None)):
-        M = pose_sensitivity(P, V, K, R, t, scale=scale)
-        expected = allocate_tolerances(M, 1.5 * EPS_R, 1.5 * EPS_T, max_dv=64).dv
-        assert np.array_equal(instance.allocation.dv, expected)
+    M = pose_sensitivity(P, V, K, R, t, scale=None)
+    expected = allocate_tolerances(M, 1.5 * EPS_R, 1.5 * EPS_T, max_dv=64).dv
+    assert np.array_equal(paper.allocation.dv, expected)
+    lo, hi = paper.cells  # the paper's cells: ±δv around the rounded keypoints
+    assert np.array_equal(hi - paper.centers, expected) and np.array_equal(
+        paper.centers - lo, expected
+    )
     assert paper.tolerance_units == "paper" and heatmap.tolerance_units == "heatmap"
     # Per image pixel the sensitivity is smaller (a 640×400 render on a 64×64 heatmap):
-    # the paper's reading allocates wider cells; the pose-bound's M stays per heatmap pixel.
-    assert paper.allocation.dv.sum() > heatmap.allocation.dv.sum()
+    # the paper's reading allocates wider cells, beyond the first-order bound; the
+    # pose-bound's M stays per heatmap pixel.
+    assert heatmap.feasible and heatmap.first_order <= 1.0 < paper.first_order
+    assert np.sum(paper.cells[1] - paper.cells[0]) > np.sum(heatmap.cells[1] - heatmap.cells[0])
     assert np.array_equal(paper.M, heatmap.M)
 
     record = certify(

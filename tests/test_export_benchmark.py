@@ -126,7 +126,7 @@ def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
         max_nodes=1000,
         check_samples=0,
     )
-    assert record["dv"] == built.allocation.dv.tolist() and record["n"] == built.hull.n == 2
+    assert record["cells"] == [c.tolist() for c in built.cells] and record["n"] == built.hull.n == 2
     assert built.spec is built.proxy.spec and built.inputs.shape == (3, 3, 64, 64)
     assert built.M.shape == (6, 46) and built.xi.shape == (6,) and built.R.shape == (3, 3)
     result = verify(built.proxy, built.hull, built.spec, timeout=600, max_nodes=1000)

@@ -5,9 +5,14 @@ ground truth and the vertices of a convex hull of perturbed images:
 
 1. nominal pose: OpenCV PnP on the ground-truth keypoints;
 2. sensitivity ``dξ/dv`` at that pose, in heatmap pixels;
-3. optimal integer tolerances ``δv`` (``κ |M| δv ≤ α ε``);
-4. pooling cells of side ``2δv + 1`` centred on the rounded ground-truth keypoints → the
-   proxy network and its spec ("each keypoint's own cell wins");
+3. optimal integer cells: under the sound ``'heatmap'`` reading, pixel ranges
+   ``[lo, hi]`` per axis whose every pixel keeps the first-order pose error, measured from
+   the *exact* ground-truth keypoints, within ``α ε / κ``
+   (:func:`kpstudy.pose.allocation.allocate_cells`); where the pixel grid alone exceeds it
+   the instance is ``not_certifiable``. Under ``'paper'``, the paper's tolerances ``δv``
+   (``κ |M| δv ≤ α ε``, per image pixel) around the rounded keypoints;
+4. pooling on those cells → the proxy network and its spec ("each keypoint's own cell
+   wins");
 5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
 6. optionally, on the same hull, the pose-bound method
    (:mod:`kpstudy.certify.pose_bound_method`): where each keypoint's argmax can go, and the
@@ -37,7 +42,7 @@ from kpstudy._memo import digest, remember
 from kpstudy.certify.pose_bound_method import HullPoseBound, argmax_outside
 from kpstudy.models.evaluation import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
-from kpstudy.models.pooling import keypoint_pooling
+from kpstudy.models.pooling import keypoint_cells
 from kpstudy.models.preprocess import (
     scale_factors,
     to_image_pixels,
@@ -45,7 +50,14 @@ from kpstudy.models.preprocess import (
     to_model_input,
 )
 from kpstudy.models.proxy import KeypointProxy, build_proxy
-from kpstudy.pose.allocation import Allocation, allocate_tolerances, allocation_scale
+from kpstudy.pose.allocation import (
+    Allocation,
+    CellAllocation,
+    allocate_cells,
+    allocate_tolerances,
+    allocation_scale,
+    cell_error,
+)
 from kpstudy.pose.geometry import inside_tolerance, tolerance
 from kpstudy.pose.pnp import solve_pnp
 from kpstudy.pose.sensitivity import pose_sensitivity
@@ -120,21 +132,33 @@ class VerificationInstance:
 
     Attributes
     ----------
-    proxy : KeypointProxy
-        Backbone → per-keypoint cell pooling (eval mode), output ``(B, Σ_k cells_k)``.
+    proxy : KeypointProxy or None
+        Backbone → per-keypoint cell pooling (eval mode), output ``(B, Σ_k cells_k)``;
+        None when not ``feasible``.
     hull : ConvexHull
         Over the ``n + 1`` normalised, resized vertices, shape ``(n+1, 3, s, s)``.
-    spec : ArgmaxSpec
+    spec : ArgmaxSpec or None
         ``proxy.spec``: each keypoint's target cell wins.
     inputs : Tensor, (n+1, 3, s, s)
         The hull's vertices as model inputs (normalised; row 0 the seed image).
-    allocation : Allocation
-        The tolerances (:func:`kpstudy.pose.allocation.allocate_tolerances`): ``dv`` (K × [δu,
-        δv], the cells' half-widths in heatmap px), ``delta``, ``objective``.
+    allocation : CellAllocation or Allocation
+        Under ``'heatmap'`` the cells around the exact keypoints
+        (:func:`kpstudy.pose.allocation.allocate_cells`); under ``'paper'`` the paper's
+        tolerances (:func:`kpstudy.pose.allocation.allocate_tolerances`, ``dv``).
     tolerance_units : str
         How the allocation was computed (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`).
+    feasible : bool
+        False when the pixel grid alone exceeds the tolerance to first order (``'heatmap'``
+        only): the instance is not certifiable at this heatmap resolution.
+    cells : tuple of ndarray of int, ((K, 2), (K, 2)) or None
+        ``(lo, hi)``: each keypoint's cell, first and last heatmap pixel per axis
+        ``(u, v)`` (under ``'paper'`` it may overhang the heatmap).
+    first_order : float
+        Largest first-order pose error over every pixel of every cell, measured from the
+        exact keypoints, as a multiple of ``ε / κ`` (≤ 1 for a feasible ``'heatmap'``
+        instance; what the ``'paper'`` reading lets through otherwise).
     centers : ndarray of int, (K, 2)
-        Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels: the cells' centres.
+        Rounded ground-truth keypoints ``(u, v)`` in heatmap pixels (each inside its cell).
     R : ndarray, (3, 3)
     t : ndarray, (3,)
         Nominal pose (PnP on the ground-truth keypoints), object → camera, metres.
@@ -144,12 +168,15 @@ class VerificationInstance:
         Ξ's half-widths ``α·[10°, 10°, 10°, 4, 4, 20 m]`` (degrees, metres).
     """
 
-    proxy: KeypointProxy
+    proxy: KeypointProxy | None
     hull: ConvexHull
-    spec: ArgmaxSpec
+    spec: ArgmaxSpec | None
     inputs: torch.Tensor
-    allocation: Allocation
+    allocation: CellAllocation | Allocation
     tolerance_units: str
+    feasible: bool
+    cells: tuple[np.ndarray, np.ndarray] | None
+    first_order: float
     centers: np.ndarray
     R: np.ndarray
     t: np.ndarray
@@ -183,9 +210,10 @@ def build_instance(
         Tolerance scale (``ε = α·[10°, 10°, 10°, 4, 4, 20 m]``), sensitivity margin κ and
         allocation weights.
     tolerance_units : {'heatmap', 'paper'}
-        How the allocation is read (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`): its
-        integers are the cells' half-widths in heatmap pixels either way; under
-        ``'paper'`` they were allocated per image pixel.
+        How the cells are chosen (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`):
+        ``'heatmap'`` (sound to first order), pixel ranges around the exact keypoints;
+        ``'paper'``, the paper's half-widths, allocated per image pixel, around the rounded
+        keypoints.
 
     Returns
     -------
@@ -222,24 +250,39 @@ def build_instance(
     R, t = nominal
     factors = scale_factors(seed.image_size, hm)
     M = _sensitivity(P, V, K, R, t, factors)
-    M_allocated = _sensitivity(P, V, K, R, t, allocation_scale(tolerance_units, factors))
-    allocation = _allocation(M_allocated, eps_r, eps_t, kappa, w1, w2, hm)
-    centers = np.rint(to_input_pixels(V, factors)).astype(np.int64)
+    exact = to_input_pixels(V, factors)
+    centers = np.rint(exact).astype(np.int64)
     if np.any((centers < 0) | (centers >= hm)):
         k = int(np.flatnonzero(np.any((centers < 0) | (centers >= hm), axis=1))[0])
         raise ValueError(
             f"seed: keypoint {k} lies outside the {hm}×{hm} heatmap at {centers[k].tolist()} "
             "(only seeds with every keypoint in the image can be certified)"
         )
-    proxy = build_proxy(backbone, keypoint_pooling(centers, allocation.dv, (hm, hm)), centers)
+    offsets = exact - centers
+    if tolerance_units == "heatmap":
+        allocation = _cells(M, offsets, eps_r, eps_t, kappa, w1, w2, centers, hm - 1 - centers)
+        below, above, feasible = allocation.below, allocation.above, allocation.feasible
+    else:
+        M_image = _sensitivity(P, V, K, R, t, None)
+        allocation = _allocation(M_image, eps_r, eps_t, kappa, w1, w2, hm)
+        below = above = allocation.dv
+        feasible = True
+    first_order = float(np.max(kappa * cell_error(M, offsets, below, above) / xi))
+    cells = (centers - below, centers + above) if feasible else None
+    proxy = None
+    if feasible:
+        proxy = build_proxy(backbone, keypoint_cells(*cells, (hm, hm)), centers).eval()
     x = to_model_input(vertices, size=s)
     return VerificationInstance(
-        proxy=proxy.eval(),
+        proxy=proxy,
         hull=ConvexHull(x),
-        spec=proxy.spec,
+        spec=None if proxy is None else proxy.spec,
         inputs=x,
         allocation=allocation,
         tolerance_units=tolerance_units,
+        feasible=feasible,
+        cells=cells,
+        first_order=first_order,
         centers=centers,
         R=R,
         t=t,
@@ -259,6 +302,15 @@ def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
     key = digest(P, V, K, R, t, () if scale is None else scale)
     make = lambda: pose_sensitivity(P, V, K, R, t, scale=scale)  # noqa: E731
     return remember(_SENSITIVITIES, key, make, 16).copy()
+
+
+def _cells(M, offsets, eps_r, eps_t, kappa, w1, w2, max_below, max_above) -> CellAllocation:
+    """:func:`kpstudy.pose.allocation.allocate_cells`, kept by the content of its inputs."""
+    key = digest(M, offsets, eps_r, eps_t, max_below, max_above, [kappa, w1, w2])
+    make = lambda: allocate_cells(  # noqa: E731
+        M, offsets, eps_r, eps_t, kappa, w1, w2, max_below=max_below, max_above=max_above
+    )
+    return remember(_ALLOCATIONS, key, make, 64)
 
 
 def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
@@ -336,16 +388,20 @@ def certify_cells(
     -------
     list of dict
         One record per cell, in order: ``image_id``, ``n`` (perturbed vertices),
-        ``status`` (``holds`` / ``violated`` / ``unknown``), ``time`` (verification, s),
-        ``total_time`` (s), ``nodes``, ``stopped``
+        ``status`` (``holds`` / ``violated`` / ``unknown``, or ``not_certifiable``: under
+        ``'heatmap'`` the pixel grid alone exceeds the tolerance to first order, so nothing
+        is verified), ``time`` (verification, s), ``total_time`` (s), ``nodes``, ``stopped``
         (what ended the search early: ``'nodes'`` (``max_nodes`` spent), ``'time'``
         (``timeout`` fired: the verdict depends on the machine), ``'stop'`` (a
         counterexample) or None),
         ``group_status`` (per keypoint), ``margin_bracket`` (the worst keypoint's margin
         over the hull: [root lower bound, smallest found by the attacks], see
-        :meth:`kpstudy.verify.Result.margin_bracket`), ``dv`` (K × [δu, δv], heatmap
-        px), ``delta``, ``objective``, ``seed_error`` (6 pose errors of the target model
-        on the seed, degrees and metres), ``seed_inside`` (that error lies in Ξ),
+        :meth:`kpstudy.verify.Result.margin_bracket`), ``cells`` (``[lo, hi]``, each K ×
+        [u, v], heatmap px), ``dv`` (K × [δu, δv], the cells' half-widths, heatmap px),
+        ``delta``, ``objective``, ``first_order`` (the cells' largest first-order pose error
+        from the exact keypoints, a multiple of ``ε / κ``), ``seed_error`` (6 pose errors
+        of the target model on the seed, degrees and metres), ``seed_inside`` (that error
+        lies in Ξ),
         ``counterexample`` (λ or None), ``empirical_inside`` (fraction of sampled hull
         images whose target pose error lies in Ξ; None unless ``holds``),
         ``argmax_outside`` (fraction of the same images whose argmax → PnP pose leaves
@@ -420,31 +476,47 @@ def _verify_instance(
         instance.R,
         instance.t,
     )
-    result = verify(
-        instance.proxy, hull, instance.spec, method=method, timeout=timeout, max_nodes=max_nodes
-    )
     seed_error = target_pose_errors(backbone, instance.inputs[:1], seed, R, t)[0]
     record = {
         "image_id": seed.image_id,
         "n": hull.n,
-        "status": result.status,
-        "time": result.time,
-        "nodes": result.nodes,
-        "stopped": result.stats.get("stopped"),
-        "group_status": list(result.group_status),
-        "margin_bracket": list(result.margin_bracket()),
-        "dv": allocation.dv.tolist(),
+        "status": "not_certifiable",
+        "time": 0.0,
+        "nodes": 0,
+        "stopped": None,
+        "group_status": [],
+        "margin_bracket": [None, None],
+        "cells": None,
+        "dv": None,
         "delta": allocation.delta,
         "objective": allocation.objective,
+        "first_order": instance.first_order,
         "seed_error": seed_error.tolist(),
         "seed_inside": bool(inside_tolerance(seed_error, xi)),
-        "counterexample": (
-            None if result.counterexample is None else result.counterexample.point.tolist()
-        ),
+        "counterexample": None,
         "empirical_inside": None,
         "argmax_outside": None,
         "empirical_samples": 0,
     }
+    if not instance.feasible:
+        return record
+    result = verify(
+        instance.proxy, hull, instance.spec, method=method, timeout=timeout, max_nodes=max_nodes
+    )
+    lo, hi = instance.cells
+    record.update(
+        status=result.status,
+        time=result.time,
+        nodes=result.nodes,
+        stopped=result.stats.get("stopped"),
+        group_status=list(result.group_status),
+        margin_bracket=list(result.margin_bracket()),
+        cells=[lo.tolist(), hi.tolist()],
+        dv=((hi - lo) / 2.0).tolist(),
+        counterexample=(
+            None if result.counterexample is None else result.counterexample.point.tolist()
+        ),
+    )
     if result.status == "holds" and check_samples:
         images = hull.image(hull.sample(int(check_samples), sample_seed))
         errors = target_pose_errors(backbone, images, seed, R, t)

@@ -63,6 +63,8 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "build_cell_pool",
             "cell_bounds",
             "cell_index",
+            "cell_params",
+            "keypoint_cells",
             "keypoint_pooling",
             "num_cells",
             "pooling_params",

@@ -1,10 +1,12 @@
 """Per-keypoint average pooling: the proxy model's cells and its class ``c_k``.
 
-A keypoint at heatmap pixel ``c`` with allocated tolerance ``dv`` (paper §6.3, docs/design.md §4.4)
-gets, on each axis, an average pooling with ``kernel = stride = 2 dv + 1`` and a zero padding
-``pad_before = (dv - c) mod stride`` so that one pooling window (a *cell*) is exactly
-``[c - dv, c + dv]``. ``pad_after`` completes the last window, so every real pixel lies in
-exactly one cell and ``0 <= pad < stride`` on both sides. Border cells that overhang the image
+A keypoint's cell on each axis is an integer pixel range ``[lo, hi]`` (paper §6.3,
+docs/design.md §4.4): the paper's ``[c - dv, c + dv]`` around the keypoint's heatmap pixel
+``c`` (:func:`pooling_params`), or any range, e.g. one chosen from the exact keypoint
+(:func:`cell_params`). The axis gets an average pooling with ``kernel = stride = hi - lo + 1``
+and a zero padding ``pad_before = (-lo) mod stride`` so that one pooling window (a *cell*)
+is exactly ``[lo, hi]``. ``pad_after`` completes the last window, so every real pixel lies
+in exactly one cell and ``0 <= pad < stride`` on both sides. Border cells that overhang the image
 average only the real pixels they cover: the pooled map is rescaled per cell by
 ``kernel area / real pixels``. The cell holding the keypoint is its class ``c_k``; any argmax
 inside it is a keypoint error within ``dv`` on that axis.
@@ -66,6 +68,27 @@ def pooling_params(center, dv, size) -> PoolParams:
     (3, 5)
     """
     return _axis_params(center, dv, size, ("center", "dv", "size"))
+
+
+def cell_params(lo, hi, size) -> PoolParams:
+    """Pooling along one axis that puts one cell exactly on ``[lo, hi]``.
+
+    Parameters
+    ----------
+    lo, hi : int
+        First and last pixel of the cell, ``lo <= hi``; the cell meets ``[0, size)``.
+    size : int
+        Axis length, ``>= 1``.
+
+    Examples
+    --------
+    >>> p = cell_params(3, 6, 10)
+    >>> p
+    PoolParams(kernel=4, stride=4, pad_before=1, pad_after=1)
+    >>> [cell_bounds(i, p, 10) for i in range(num_cells(p, 10))]
+    [(0, 2), (3, 6), (7, 9)]
+    """
+    return _range_params(lo, hi, size, ("lo", "hi", "size"))
 
 
 def num_cells(params: PoolParams, size) -> int:
@@ -240,6 +263,35 @@ def build_cell_pool(center_uv, dv_uv, heatmap_size) -> tuple[CellAvgPool2d, int]
     return pool, target
 
 
+def keypoint_cells(lo, hi, heatmap_size) -> list[tuple[PoolParams, PoolParams]]:
+    """One (horizontal, vertical) pair of :func:`cell_params` per keypoint.
+
+    Parameters
+    ----------
+    lo, hi : array_like of int, shape (K, 2)
+        Each keypoint's cell ``[lo, hi]`` per axis ``(u, v)``, heatmap pixels.
+    heatmap_size : (int, int)
+        ``(H, W)``.
+
+    Examples
+    --------
+    >>> horizontal, vertical = keypoint_cells([(3, 0)], [(6, 1)], (2, 10))[0]
+    >>> horizontal, vertical.kernel
+    (PoolParams(kernel=4, stride=4, pad_before=1, pad_after=1), 2)
+    """
+    lo, hi = [_pair(c, "lo[k]") for c in lo], [_pair(c, "hi[k]") for c in hi]
+    if len(lo) != len(hi):
+        raise ValueError(f"hi: expected {len(lo)} rows (one per keypoint), got {len(hi)}")
+    H, W = _pair(heatmap_size, "heatmap_size")
+    return [
+        (
+            _range_params(lu, hu, W, (f"lo[{k}][0]", f"hi[{k}][0]", "heatmap_size[1]")),
+            _range_params(lv, hv, H, (f"lo[{k}][1]", f"hi[{k}][1]", "heatmap_size[0]")),
+        )
+        for k, ((lu, lv), (hu, hv)) in enumerate(zip(lo, hi))
+    ]
+
+
 def keypoint_pooling(centers, dv, heatmap_size) -> list[tuple[PoolParams, PoolParams]]:
     """One (horizontal, vertical) pair of :func:`pooling_params` per keypoint.
 
@@ -272,11 +324,20 @@ def keypoint_pooling(centers, dv, heatmap_size) -> list[tuple[PoolParams, PoolPa
 
 
 def _axis_params(center, dv, size, names: tuple[str, str, str]) -> PoolParams:
+    """The cell ``[center - dv, center + dv]``, ``center`` a pixel of the axis."""
     size = _int(size, names[2], 1, None, "an integer >= 1")
     center = _int(center, names[0], 0, size, f"an integer pixel in [0, {size})")
     dv = _int(dv, names[1], 0, None, "an integer >= 0")
-    stride = 2 * dv + 1
-    pad_before = (dv - center) % stride
+    return _range_params(center - dv, center + dv, size, names)
+
+
+def _range_params(lo, hi, size, names: tuple[str, str, str]) -> PoolParams:
+    """The cell ``[lo, hi]`` (it must meet ``[0, size)``)."""
+    size = _int(size, names[2], 1, None, "an integer >= 1")
+    lo = _int(lo, names[0], -(2**62), size, f"an integer pixel < {size}")
+    hi = _int(hi, names[1], max(lo, 0), None, f"an integer >= max({names[0]}, 0)")
+    stride = hi - lo + 1
+    pad_before = (-lo) % stride
     n = -(-(size + pad_before) // stride)
     return PoolParams(stride, stride, pad_before, n * stride - size - pad_before)
 
@@ -295,14 +356,13 @@ def _check_params(params, size=None, names: tuple[str, str] = ("params", "size")
         isinstance(params, PoolParams)
         and all(isinstance(p, int) and not isinstance(p, bool) for p in params)
         and params.kernel == params.stride >= 1
-        and params.stride % 2 == 1
         and 0 <= params.pad_before < params.stride
         and 0 <= params.pad_after < params.stride
     )
     if not ok:
         raise ValueError(
-            f"{names[0]}: expected a PoolParams from pooling_params (odd kernel == stride, "
-            f"0 <= pads < stride), got {params!r}"
+            f"{names[0]}: expected a PoolParams from pooling_params or cell_params "
+            f"(kernel == stride, 0 <= pads < stride), got {params!r}"
         )
     if size is None:
         return params

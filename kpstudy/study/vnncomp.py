@@ -33,6 +33,11 @@ import torch
 __all__ = ["DTYPES", "export_benchmark", "instance_name"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: Why an instance whose pixel grid alone exceeds the tolerance is not exported.
+_NOT_CERTIFIABLE = (
+    "not certifiable at this heatmap resolution (the nearest pixels' first-order pose "
+    "error is {:.3g} × ε/κ)"
+)
 
 
 class _NothingWritten(Exception):
@@ -119,7 +124,8 @@ def export_benchmark(
     dict
         ``out`` (Path), ``written`` (instance names, in order) and ``skipped``
         (``(name, reason)`` of the seeds :func:`kpstudy.certify.build_instance` refuses:
-        no valid nominal pose, a keypoint outside the heatmap).
+        no valid nominal pose, a keypoint outside the heatmap, and of the instances that
+        are not certifiable at the heatmap's resolution).
 
     Raises
     ------
@@ -193,6 +199,9 @@ def export_benchmark(
                     )
                 except ValueError as exc:  # a seed that cannot be certified: no instance
                     skipped.append((name, str(exc)))
+                    continue
+                if not built.feasible:
+                    skipped.append((name, _NOT_CERTIFIABLE.format(built.first_order)))
                     continue
                 if work.exists():
                     shutil.rmtree(work)
