@@ -333,9 +333,9 @@ def allocate_cells(
     a time on the side that keeps every pixel within ``ε / κ`` (:func:`cell_error`), the
     smallest cell first: the rounding offsets leave room on one side.
 
-    The exact optimum over every asymmetric range (a MILP in ``4K`` integers with the
-    offsets in its right-hand sides) took 0.6–30 s per allocation on 2 cores against
-    0.03–0.7 s for this one, for a ``J`` 1–3 % larger; this is the closest fast rule.
+    The exact optimum over every asymmetric range, a MILP in ``4K`` integers with the
+    offsets in its right-hand sides, is one to two orders of magnitude slower for a ``J``
+    a few per cent larger (docs/design.md §4.4).
 
     Parameters
     ----------
