@@ -29,6 +29,7 @@ import multiprocessing
 import os
 import re
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -142,20 +143,38 @@ def _sigint_held():
     """Hold Ctrl-C (SIGINT) back while worker processes start.
 
     Processes started inside the block are born with SIGINT blocked, so a Ctrl-C while
-    they import cannot print their tracebacks; this process gets the signal (a
-    ``KeyboardInterrupt``) when the block ends, none is lost.
+    they import cannot print their tracebacks. Blocking it in this thread alone does not
+    hold it back here: other threads (tqdm's monitor, OpenBLAS's) take it, and Python
+    would raise ``KeyboardInterrupt`` in the main thread anywhere in the block (a worker
+    spawned but never sent its task then prints ``EOFError``). So, on the main thread,
+    a handler that only notes the signal stands in for the block's duration; a signal
+    that came is delivered again when the block ends (a ``KeyboardInterrupt`` under
+    Python's default handler), none is lost.
     """
-    if not hasattr(signal, "pthread_sigmask"):  # Windows
-        yield
-        return
-    from multiprocessing import resource_tracker
-
-    resource_tracker.ensure_running()  # started later, it would unblock SIGINT itself
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    came = []
+    previous_handler = None
+    if threading.current_thread() is threading.main_thread():
+        previous_handler = signal.getsignal(signal.SIGINT)  # None: not set from Python
+        if previous_handler is not None:
+            signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
     try:
-        yield
+        if hasattr(signal, "pthread_sigmask"):  # not on Windows
+            from multiprocessing import resource_tracker
+
+            resource_tracker.ensure_running()  # started later, it would unblock SIGINT itself
+            previous_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                yield
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, previous_mask)
+        else:
+            yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        if previous_handler is not None:
+            # signal.signal first runs a handler still pending (ours), then restores
+            signal.signal(signal.SIGINT, previous_handler)
+            if came:
+                signal.raise_signal(signal.SIGINT)  # to the restored handler, at once
 
 
 def _init_worker(config: dict, threads: int | None = None) -> None:
@@ -256,9 +275,12 @@ def generate_dataset(
                     bar.update()
             else:
                 context = multiprocessing.get_context("spawn")
-                with _sigint_held():
-                    pool = context.Pool(workers, _init_pool_worker, (config, 1))
-                with pool:
+                with contextlib.ExitStack() as stack:
+                    # a Ctrl-C while the pool starts surfaces once it is whole and in
+                    # `stack`, which then ends it (terminate, join) as any later one
+                    with _sigint_held():
+                        pool = context.Pool(workers, _init_pool_worker, (config, 1))
+                        stack.enter_context(pool)
                     for _ in pool.imap_unordered(_make, todo, chunksize=4):
                         bar.update()
         records = [

@@ -1,8 +1,16 @@
 """The rendered dataset: annotation geometry, masks, COCO format, determinism, CLI errors."""
 
+import gc
 import json
+import multiprocessing
+import multiprocessing.util
+import os
+import select
+import signal
 import subprocess
 import sys
+import threading
+import time
 
 import cv2
 import numpy as np
@@ -15,6 +23,7 @@ from data_gen.keypoints import KEYPOINT_NAMES
 from kpstudy.pose.geometry import project
 
 SIZE = "240x150"
+HANG = 300  # seconds: only a hang takes this long
 
 
 @pytest.fixture(scope="module")
@@ -130,6 +139,135 @@ def test_interrupted_run_leaves_no_output_and_resumes(small, tmp_path, monkeypat
     generate_dataset(out, 8, SIZE, seed=3, progress=False)
     assert _files(out) == _files(small)
     assert not (tmp_path / ".data.partial").exists()
+
+
+@pytest.fixture
+def sigint_elsewhere():
+    """Another thread that takes SIGINT (as tqdm's monitor thread or OpenBLAS's do), and
+    ``wait()``: returns once a SIGINT has reached this process's C-level handler (its
+    byte on the set_wakeup_fd pipe), so that Python holds it pending. Restores the
+    SIGINT handler and the wakeup fd afterwards."""
+    if not hasattr(signal, "pthread_sigmask"):
+        pytest.skip("no per-thread signal masks here")
+    handler = signal.getsignal(signal.SIGINT)
+    read, write = os.pipe()
+    os.set_blocking(write, False)
+    ready, stop = threading.Event(), threading.Event()
+
+    def other():
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        ready.set()
+        stop.wait()
+
+    thread = threading.Thread(target=other, daemon=True)
+    thread.start()
+    ready.wait()
+    previous_fd = signal.set_wakeup_fd(write)
+
+    def wait():
+        deadline = time.monotonic() + HANG
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                pytest.fail("the SIGINT never reached this process")
+            if select.select([read], [], [], left)[0] and signal.SIGINT in os.read(read, 64):
+                return
+
+    try:
+        yield wait
+    finally:
+        signal.set_wakeup_fd(previous_fd)
+        signal.signal(signal.SIGINT, handler)
+        stop.set()
+        thread.join()
+        os.close(read)
+        os.close(write)
+
+
+def _step(steps, step):
+    steps.append(step)  # a Python call: a pending signal handler runs at it
+
+
+def test_ctrl_c_while_held_surfaces_when_the_block_ends(sigint_elsewhere):
+    steps = []
+    with pytest.raises(KeyboardInterrupt):
+        with dataset_module._sigint_held():
+            os.kill(os.getpid(), signal.SIGINT)  # the kernel gives it to the other thread
+            sigint_elsewhere()
+            for step in range(5):
+                _step(steps, step)
+            _step(steps, "end")
+    assert steps == [0, 1, 2, 3, 4, "end"]  # not interrupted inside the block
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+
+
+def test_held_region_without_ctrl_c_and_off_the_main_thread():
+    with dataset_module._sigint_held():
+        pass
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    errors = []
+
+    def held():
+        try:
+            with dataset_module._sigint_held():
+                pass
+        except BaseException as error:  # noqa: BLE001 - reported below
+            errors.append(error)
+
+    thread = threading.Thread(target=held)
+    thread.start()
+    thread.join()
+    assert errors == []
+
+
+def _gone(pid) -> bool:
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] != 0
+    except ChildProcessError:  # already reaped (by its Popen)
+        return True
+
+
+def test_ctrl_c_while_the_pool_starts_leaves_no_worker_and_no_traceback(
+    tmp_path, monkeypatch, capfd, sigint_elsewhere
+):
+    """Ctrl-C just after the first worker was spawned, before it was sent its task: the
+    pool is still started whole, then torn down; no worker prints ``EOFError``."""
+    real = multiprocessing.util.spawnv_passfds
+    workers = []
+
+    def spawn(path, args, passfds):
+        pid = real(path, args, passfds)
+        if any("spawn_main" in os.fsdecode(arg) for arg in args):
+            workers.append(pid)
+            if len(workers) == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+                sigint_elsewhere()
+        return pid
+
+    monkeypatch.setattr(multiprocessing.util, "spawnv_passfds", spawn)
+    out = tmp_path / "data"
+    interrupted = False
+    try:
+        generate_dataset(out, 8, SIZE, seed=3, workers=2, progress=False)
+    except KeyboardInterrupt:
+        interrupted = True
+    gc.collect()  # a half-made worker's Popen closes its pipe: the worker reads an EOF
+    deadline = time.monotonic() + HANG
+    while not all(_gone(pid) for pid in workers):
+        if time.monotonic() > deadline:
+            for pid in workers:
+                if not _gone(pid):
+                    os.kill(pid, signal.SIGKILL)
+                    os.waitpid(pid, 0)
+            pytest.fail("a worker was left running")
+        select.select([], [], [], 0.05)  # hang-only poll
+    err = capfd.readouterr().err
+    assert interrupted
+    assert "Traceback" not in err and "Error" not in err, err
+    assert len(workers) == 2  # the pool was started whole before the interrupt
+    assert not multiprocessing.active_children()
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(
