@@ -291,3 +291,108 @@ def test_intervals_compare_as_cells_and_quartiles_as_timing(tmp_path):
     differs = compare_results(tmp_path / "a", tmp_path / "c")["tables/t_local.csv"]
     assert "verified_rate_lo" in differs and "verified_rate_hi" in differs
     assert "time_median" not in differs and "paper_rate_lo" not in differs
+
+
+def _run(root, records: pd.DataFrame):
+    """A results folder holding T-local of ``records`` and the records' CSV."""
+    write_table(tables.t_local(records), root / "tables" / "t_local")
+    records.to_csv(root / "tables" / "t_local_records.csv", index=False)
+    return root
+
+
+def test_compare_names_the_cells_where_a_time_cap_ended_a_search(tmp_path):
+    """A cap that fired in one run only is named, per file, after the cells that differ;
+    without a fired cap nothing is named."""
+    records = local_records().query("model == 'cnn'").reset_index(drop=True)
+    records["stopped"] = "nodes"
+    records["pb_stopped"] = np.where(records.tolerance_units == "heatmap", "nodes", None)
+    at = (
+        (records.tolerance_units == "heatmap") & ~records.overlapping
+        & (records.kappa == 1.0) & (records.alpha == 1.5) & (records.image_id == 0)
+    )  # fmt: skip
+    assert at.sum() == 1
+    # Run b: the allocation method's search of that instance capped before its budget
+    # (unknown, not holds); the pose-bound method's of the same instance capped too, with
+    # its verdict unchanged.
+    capped = records.copy()
+    capped.loc[at, ["status", "stopped", "pb_stopped"]] = ["unknown", "time", "time"]
+    a, b = _run(tmp_path / "a", records), _run(tmp_path / "b", capped)
+    found = compare_results(a, b)
+    cell = "cnn heatmap α=1.5 κ=1 m=2 non-overlapping"
+    instance = "cnn heatmap objects image 0 α=1.5 κ=1 m=2 non-overlapping"
+    caps = "; time cap fired (not the node budget: the verdict depends on the machine's speed)"
+    assert found["tables/t_local_records.csv"] == (
+        "cells differ: status (1), stopped (1), pb_stopped (1)"
+        f"{caps} in b only: {instance} [alloc], {instance} [pb]; "
+        "rows that differ with no cap fired in either run: 0 of 1"
+    )
+    table = found["tables/t_local.csv"]
+    assert table.startswith("cells differ: holds (1), unknown (1), ")
+    assert table.endswith(
+        f"{caps} in b only: {cell} [alloc], {cell} [pb]; "
+        "rows that differ with no cap fired in either run: 0 of 1"
+    )
+    assert compare_results(b, a)["tables/t_local.csv"].endswith(
+        f"in a only: {cell} [alloc], {cell} [pb]; "
+        "rows that differ with no cap fired in either run: 0 of 1"
+    )
+    # Another instance differs as well, without a cap: counted apart.
+    other = capped.copy()
+    other.loc[other.index[~at][0], "status"] = "unknown"
+    found = compare_results(a, _run(tmp_path / "c", other))
+    assert found["tables/t_local_records.csv"].endswith(
+        f"in b only: {instance} [alloc], {instance} [pb]; "
+        "rows that differ with no cap fired in either run: 1 of 2"
+    )
+    # The cap fired in both runs, one of them elsewhere too: named by run.
+    both = capped.copy()
+    both.loc[~at & (both.tolerance_units == "paper"), "stopped"] = "time"
+    found = compare_results(b, _run(tmp_path / "d", both))["tables/t_local.csv"]
+    assert "in b only: cnn paper α=1 κ=1 m=2 non-overlapping [alloc] ×2, " in found
+    assert f"in both runs: {cell} [alloc], {cell} [pb]" in found
+    # No cap in either run: what differs, nothing named.
+    changed = records.copy()
+    changed.loc[at, "status"] = "unknown"
+    found = compare_results(a, _run(tmp_path / "e", changed))
+    assert found == {
+        "tables/t_local.csv": "cells differ: holds (1), unknown (1), verified_rate (1), "
+        "verified_rate_lo (1), verified_rate_hi (1), decided (1), pb_only (1)",
+        "tables/t_local_records.csv": "cells differ: status (1)",
+    }
+    # The same records: the same tables, whatever the caps.
+    assert set(compare_results(b, _run(tmp_path / "f", capped)).values()) == {"same"}
+
+
+def test_capped_searches_reads_tables_and_records_as_stored_and_from_csv():
+    records = pd.DataFrame(
+        {
+            "kind": "contrast",
+            "level": 5e-4,
+            "image_id": [0, 1, 2],
+            "kappa": 1.0,
+            "alpha": 1.0,
+            "status": ["holds", "unknown", "unknown"],
+            "time": 1.0,
+            "seed_inside": True,
+            "stopped": ["nodes", "time", "time"],
+            "pb_status": ["holds", "unknown", "holds"],
+            "pb_time": 1.0,
+            "pb_stopped": ["witness", "time", None],
+            "pb_nonlinear": [[1.0] * 6] * 3,
+        }
+    )
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        assert comparison.capped_searches(frame) == {
+            "contrast image 1 α=1 κ=1 level=0.0005 [alloc]": 1,
+            "contrast image 2 α=1 κ=1 level=0.0005 [alloc]": 1,
+            "contrast image 1 α=1 κ=1 level=0.0005 [pb]": 1,
+        }
+        table = tables.summarise(frame, ["kind", "level", "kappa", "alpha"])
+        assert comparison.capped_searches(table) == {
+            "contrast α=1 κ=1 level=0.0005 [alloc]": 2,
+            "contrast α=1 κ=1 level=0.0005 [pb]": 1,
+        }
+    # Neither a table nor records (no κ, α), or no cap fired: nothing.
+    assert comparison.capped_searches(records.drop(columns=["kappa"])) == {}
+    assert comparison.capped_searches(records.assign(stopped="nodes", pb_stopped=None)) == {}
+    assert comparison.time_caps(records.iloc[:1], records.iloc[:1]) == ""

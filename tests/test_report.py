@@ -336,3 +336,120 @@ def test_the_resnet_reading_names_its_256_pixel_heatmaps():
     assert list(table.not_certifiable) == [3, 3] and list(table.verified_rate) == [0.25, 0.25]
     (line,) = [s for s in report.campaign_summary(table) if s.startswith("The pixel grid")]
     assert "256×256 heatmaps of `resnet18`" in line and line.endswith("α = 1.5: 75% of the seeds.")
+
+
+def _with_errors(records: pd.DataFrame, rows, text="ValueError: keypoint 0 outside the image"):
+    """``records`` with the rows at positions ``rows`` turned into ``error`` records: the
+    error text, no certificate."""
+    records = records.copy().reset_index(drop=True)
+    records["error"] = None
+    records.loc[rows, "status"] = "error"
+    records.loc[rows, "error"] = text
+    for column in ("time", "seed_inside", "counterexample", "dv", "pb_status", "pb_time"):
+        records[column] = records[column].astype(object)
+        records.loc[rows, column] = None
+    return records
+
+
+def _campaign_results(tmp_path, records: pd.DataFrame, name: str = "t_local"):
+    """A results folder with table ``name`` of ``records`` and the records' CSV."""
+    out = _results(tmp_path, getattr(tables, name)(records), name, figure=False)
+    records.to_csv(out / "tables" / f"{name}_records.csv", index=False)
+    return out
+
+
+def test_the_report_lists_the_instances_that_ended_error(tmp_path, capsys):
+    records = local_records().query("model == 'cnn'").reset_index(drop=True)
+    first = records.index[
+        (records.tolerance_units == "heatmap") & records.overlapping & (records.alpha == 1.5)
+    ][0]
+    records = _with_errors(records, [first], "RuntimeError: a `bad` | value\nsecond line")
+    out = _campaign_results(tmp_path, records)
+    row = records.loc[first]
+    label = f"cnn heatmap objects image {row.image_id} α=1.5 κ={row.kappa:g} m=2 overlapping"
+    assert report.error_instances(out) == {
+        "t_local": (32, [(label, "RuntimeError: a `bad` | value\nsecond line")])
+    }
+    text = report.write_report(out).read_text()
+    section = text.split("**Instances that could not be run.**")[1]
+    assert section.startswith(
+        " 1 of the 32 records of [tables/t_local_records.csv](tables/t_local_records.csv) "
+        "ended `error`"
+    )
+    # One bullet: the instance and its error on one line, as code.
+    assert f"\n- {label}: `` RuntimeError: a `bad` | value second line ``\n" in section
+    assert text.index("**Instances that could not be run.**") < text.index("## T-global")
+    # kpstudy reproduce lists the same instance from the same function.
+    from kpstudy.study.campaign import InstanceErrors
+    from kpstudy.study.reproduction import campaign_errors
+
+    with pytest.raises(InstanceErrors, match="^1 of 32 campaign instances ended 'error'"):
+        campaign_errors(out)
+    assert f"[reproduce] error: t_local {label}: RuntimeError" in capsys.readouterr().out
+
+
+def test_the_error_list_is_capped_and_counts_the_rest(tmp_path):
+    records = local_records().query("model == 'cnn'")
+    records = _with_errors(records, list(range(23)))  # 23 of 32
+    text = report.write_report(_campaign_results(tmp_path, records)).read_text()
+    section = text.split("**Instances that could not be run.**")[1].split("\n\n")[1]
+    bullets = section.splitlines()
+    assert len(bullets) == report.LISTED_ERRORS + 1 == 21
+    assert all(b.endswith(": `ValueError: keypoint 0 outside the image`") for b in bullets[:20])
+    assert bullets[-1].startswith("- and 3 more (every one: the rows of tables/t_local_records")
+    # Without an error record, or without records, no such section.
+    clean = _campaign_results(tmp_path / "clean", local_records().query("model == 'cnn'"))
+    assert "Instances that could not be run" not in report.write_report(clean).read_text()
+    assert report.error_instances(tmp_path / "none") == {}
+
+
+def test_a_table_missing_its_markdown_still_lists_its_error_records(tmp_path):
+    records = _with_errors(local_records().query("model == 'cnn'"), [0])
+    out = _campaign_results(tmp_path, records)
+    (out / "tables" / "t_local.md").unlink()
+    text = report.write_report(out).read_text()
+    assert "*Table `t_local` is missing" in text
+    assert "1 of the 32 records of [tables/t_local_records.csv]" in text
+
+
+def _capped(records: pd.DataFrame) -> pd.DataFrame:
+    """``records`` with every search stopped by its node budget but two: the allocation
+    method's of seed 0 at κ = 1, α = 1 (non-overlapping, both readings) and the pose-bound
+    method's of seed 1 there, ended by the time cap."""
+    records = records.copy()
+    records["stopped"] = "nodes"
+    records["pb_stopped"] = np.where(records.tolerance_units == "heatmap", "nodes", None)
+    cell = (records.kappa == 1.0) & (records.alpha == 1.0) & ~records.overlapping
+    records.loc[cell & (records.image_id == 0), "stopped"] = "time"
+    pb = cell & (records.image_id == 1) & (records.tolerance_units == "heatmap")
+    records.loc[pb, "pb_stopped"] = "time"
+    return records
+
+
+def test_the_report_counts_the_searches_a_time_cap_ended_per_method(tmp_path):
+    records = local_records().query("model == 'cnn'")
+    table = tables.t_local(_capped(records))
+    text = report.write_report(_results(tmp_path, table, figure=False)).read_text()
+    lines = [s for s in text.splitlines() if "time cap" in s]
+    heat, paper = (
+        next(s for s in lines if s.startswith(f"- `cnn`: '{u}' reading: "))
+        for u in ("heatmap", "paper")
+    )
+    assert (
+        "**Time caps.** The time cap, not the node budget, ended the search of 1 of the "
+        "allocation method's and 1 of the pose-bound method's instances (α=1 κ=1 m=2 "
+        "non-overlapping: allocation 1, pose-bound 1): those verdicts depend on "
+        "the machine's speed"
+    ) in heat
+    assert "1 of the allocation method's instances (α=1 κ=1 m=2 non-overlapping: allocation 1)" in (
+        paper
+    )
+    assert "pose-bound" not in paper  # the pose-bound method runs under the first reading only
+    # No cap fired: said so, per method.
+    table = tables.t_local(_capped(records).assign(stopped="nodes", pb_stopped="nodes"))
+    (line,) = [s for s in report.campaign_summary(table) if "time cap" in s]
+    assert line.startswith(
+        "The time cap ended no search of the allocation method's or the pose-bound method's "
+        "instances"
+    )
+    assert "do not depend on the machine's speed" in line

@@ -72,3 +72,25 @@ def test_readings_get_a_row_each_and_a_sentence_naming_the_nearer():
         tables.reading_comparison(tables.t_global(heatmap), "verified_rate", "paper_rate", "x")
         is None
     )
+
+
+def test_instance_label_names_records_as_stored_and_read_back_from_csv():
+    records = pd.DataFrame(
+        [
+            dict(model="cnn", tolerance_units="paper", kind="objects", image_id=12,
+                 m=3, overlapping=True, level=None, kappa=1.5, alpha=1.0),
+            dict(model="cnn", tolerance_units="paper", kind="brightness", image_id=7,
+                 m=None, overlapping=None, level=2.0, kappa=1.0, alpha=0.5),
+            dict(model="cnn", tolerance_units="paper", kind="objects", image_id=123456789,
+                 m=2, overlapping=False, level=None, kappa=1.0, alpha=1.5),
+        ]
+    )  # fmt: skip
+    expected = [
+        "cnn paper objects image 12 α=1 κ=1.5 m=3 overlapping",
+        "cnn paper brightness image 7 α=0.5 κ=1 level=2",
+        "cnn paper objects image 123456789 α=1.5 κ=1 m=2 non-overlapping",
+    ]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        assert [tables.instance_label(r) for _, r in frame.iterrows()] == expected
+    assert tables.instance_label({"overlapping": "False", "m": "2"}) == "m=2 non-overlapping"
+    assert tables.instance_label({}) == ""

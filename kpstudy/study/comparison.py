@@ -22,6 +22,11 @@ rate carries its 95 % Wilson interval (:func:`kpstudy.study.trends.rate_interval
 paper's over its 200 seeds), and the times their median and quartiles beside the mean. A
 cell without data (no such record, or no seed inside Ξ for a rate) is hatched, never
 drawn as 0.
+
+:func:`time_caps` names, for ``kpstudy compare``
+(:func:`kpstudy.study.reproduction.compare_results`), the cells of two runs' tables and
+records where a time cap rather than a node budget ended a search: verdicts that depend on
+the machine's speed, and so may explain a difference.
 """
 
 from __future__ import annotations
@@ -34,16 +39,19 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from kpstudy.study.tables import instance_label
 from kpstudy.study.trends import MIN_SEEDS, PAPER_SEEDS, paper_interval, rate_intervals
 
 __all__ = [
     "CONDITIONS",
     "GRID_COLUMNS",
     "PAPER_HARDWARE",
+    "capped_searches",
     "compact_table",
     "method_cells",
     "plot_comparison",
     "save_comparison",
+    "time_caps",
 ]
 
 #: Table columns that name a row of a rate grid, in this order when present.
@@ -573,3 +581,133 @@ def save_comparison(
         raise ValueError(f"table_csv: expected a table's CSV file, got {str(table_csv)!r}")
     fig = plot_comparison(pd.read_csv(table_csv), title or table_csv.stem, hardware)
     return save_figure(fig, png, dpi=dpi)
+
+
+#: Per method: the record field that says what ended its search (``'time'``: the cap),
+#: the table column that counts those instances, and the method's short name.
+_CAPS = (("stopped", "capped", "alloc"), ("pb_stopped", "pb_capped", "pb"))
+#: At most this many cells are named per group of :func:`time_caps`.
+_NAMED = 10
+
+
+def capped_searches(frame: pd.DataFrame) -> dict[str, int]:
+    """Where a time cap, not the node budget, ended a search in a verification table or
+    its records.
+
+    Parameters
+    ----------
+    frame : DataFrame
+        A :mod:`kpstudy.study.tables` table (``capped``, ``pb_capped``: counts per cell)
+        or its campaign records (``stopped``, ``pb_stopped`` = ``'time'``), as returned or
+        read back from CSV; a frame without ``kappa`` and ``alpha`` is neither.
+
+    Returns
+    -------
+    dict
+        ``{'<cell or instance> [<method>]': instances}`` (the cell's words:
+        :func:`kpstudy.study.tables.instance_label`; the method ``alloc`` or ``pb``), for
+        every row and method whose cap fired, in the frame's order; ``{}`` without any.
+
+    Examples
+    --------
+    >>> records = pd.DataFrame({"model": ["cnn", "cnn"], "image_id": [0, 1],
+    ...                         "kappa": 1.0, "alpha": 1.0, "stopped": ["nodes", "time"]})
+    >>> capped_searches(records)
+    {'cnn image 1 α=1 κ=1 [alloc]': 1}
+    """
+    found: dict[str, int] = {}
+    for method, counts in _cap_counts(frame):
+        for i in np.flatnonzero(counts > 0):
+            key = f"{instance_label(frame.iloc[i])} [{method}]"
+            found[key] = found.get(key, 0) + int(counts[i])
+    return found
+
+
+def _cap_counts(frame: pd.DataFrame) -> list[tuple[str, np.ndarray]]:
+    """Per method the frame records, the searches its cap ended in each row (records:
+    0 or 1; tables: the ``capped`` count); ``[]`` for a frame that is not a verification
+    table or its records."""
+    if not {"kappa", "alpha"} <= set(frame.columns):
+        return []
+    out = []
+    for stopped, capped, method in _CAPS:
+        if stopped in frame:
+            counts = (frame[stopped].astype(str) == "time").to_numpy(np.int64)
+        elif capped in frame:
+            counts = np.nan_to_num(_numeric(frame, capped)).astype(np.int64)
+        else:
+            continue
+        out.append((method, counts))
+    return out
+
+
+def time_caps(a: pd.DataFrame, b: pd.DataFrame, differing=None) -> str:
+    """What two runs' versions of a table or its records say about fired time caps, to
+    append to what differs between them (:func:`kpstudy.study.reproduction.compare_results`).
+
+    Parameters
+    ----------
+    a, b : DataFrame
+        The same ``tables/*.csv`` of two results folders, as read back.
+    differing : array of bool, optional
+        Per row, whether the runs' rows differ (where the frames have the same rows): then
+        how many of the differing rows had no cap fire in either run is added.
+
+    Returns
+    -------
+    str
+        ``''`` when no cap fired in either run (or the frames are neither a verification
+        table nor records, :func:`capped_searches`); else ``'; time cap fired …'`` naming
+        the cells and methods where it fired in a only, in b only and in both runs (a
+        count ``×n`` where a cell holds more than one), whose verdicts depend on the
+        machine's speed.
+
+    Examples
+    --------
+    >>> a = pd.DataFrame({"image_id": [0, 1], "kappa": 1.0, "alpha": 1.0,
+    ...                   "status": ["holds", "unknown"], "stopped": [None, "time"]})
+    >>> b = a.assign(status=["holds", "holds"], stopped=[None, None])
+    >>> print(time_caps(a, b, np.array([False, True])))  # doctest: +NORMALIZE_WHITESPACE
+    ; time cap fired (not the node budget: the verdict depends on the machine's speed) in
+    a only: image 1 α=1 κ=1 [alloc]; rows that differ with no cap fired in either run: 0 of 1
+    >>> time_caps(b, b)
+    ''
+    """
+    in_a, in_b = capped_searches(a), capped_searches(b)
+    if not in_a and not in_b:
+        return ""
+    groups = (
+        ("a only", [k for k in in_a if k not in in_b]),
+        ("b only", [k for k in in_b if k not in in_a]),
+        ("both runs", [k for k in in_a if k in in_b]),
+    )
+    parts = [f"in {where}: {_cap_names(keys, in_a, in_b)}" for where, keys in groups if keys]
+    text = (
+        "; time cap fired (not the node budget: the verdict depends on the machine's speed) "
+        + "; ".join(parts)
+    )
+    if differing is not None and len(differing) == len(a) == len(b):
+        differing = np.asarray(differing, dtype=bool)
+        fired = np.zeros(len(a), dtype=bool)
+        for _, counts in [*_cap_counts(a), *_cap_counts(b)]:
+            fired |= counts > 0
+        text += (
+            f"; rows that differ with no cap fired in either run: "
+            f"{int((differing & ~fired).sum())} of {int(differing.sum())}"
+        )
+    return text
+
+
+def _cap_names(keys: list[str], in_a: dict, in_b: dict) -> str:
+    """``keys`` joined, each with its count where above 1 (``×2``; ``×2 in a, ×1 in b``
+    where the runs' counts differ), at most :data:`_NAMED` and then how many more."""
+    names = []
+    for key in keys[:_NAMED]:
+        n_a, n_b = in_a.get(key), in_b.get(key)
+        if n_a and n_b and n_a != n_b:
+            names.append(f"{key} ×{n_a} in a, ×{n_b} in b")
+        else:
+            n = n_a or n_b
+            names.append(f"{key} ×{n}" if n > 1 else key)
+    more = f", and {len(keys) - _NAMED} more" if len(keys) > _NAMED else ""
+    return ", ".join(names) + more

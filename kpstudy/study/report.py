@@ -8,8 +8,11 @@ figure (:func:`kpstudy.study.comparison.plot_comparison`), a compact table of th
 reader compares (:func:`kpstudy.study.comparison.compact_table`), a link to the full CSV and
 the full table folded; their readings say where our 95 % intervals and the paper's
 overlap (:func:`interval_readings`), whether a cell's seeds make it a smoke test, what the
-pixel grid alone rules out (``not_certifiable``), and test each trend the paper states at
-95 % (:mod:`kpstudy.study.trends`) on our numbers and on the paper's.
+pixel grid alone rules out (``not_certifiable``), how many searches a time cap rather than
+a node budget ended (verdicts that depend on the machine's speed), and test each trend the
+paper states at 95 % (:mod:`kpstudy.study.trends`) on our numbers and on the paper's; the
+instances of their records (``tables/<name>_records.csv``) that ended ``'error'`` are
+listed (:func:`error_instances`, :func:`error_markdown`).
 """
 
 from __future__ import annotations
@@ -21,18 +24,22 @@ import pandas as pd
 
 from kpstudy.io import write_text_atomic
 from kpstudy.study.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
-from kpstudy.study.tables import reading_comparison
+from kpstudy.study.tables import instance_label, reading_comparison
 from kpstudy.study.trends import LEVEL, MIN_SEEDS, trend_table
 
 __all__ = [
     "COMPARED",
+    "LISTED_ERRORS",
     "SECTIONS",
     "campaign_summary",
     "compact_markdown",
+    "error_instances",
+    "error_markdown",
     "interval_readings",
     "not_certifiable_reading",
     "smoke_test_reading",
     "t_prob_readings",
+    "time_cap_reading",
     "trend_markdown",
     "trend_readings",
     "write_report",
@@ -96,6 +103,10 @@ SECTIONS = (
 
 #: The tables shown as figure + compact table (their figure has the table's name).
 COMPARED = ("t_local", "t_global", "t_resnet")
+#: At most this many error instances are listed per table (then a count of the rest).
+LISTED_ERRORS = 20
+#: At most this many capped cells are named per model and reading.
+_NAMED_CELLS = 10
 
 
 def write_report(out, profile: dict | None = None) -> Path:
@@ -118,6 +129,7 @@ def write_report(out, profile: dict | None = None) -> Path:
         lines += ["| setting | value |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in profile.items()]
         lines.append("")
+    errors = error_instances(out)
     readers = {
         "t_prob": t_prob_readings,
         "t_local": _campaign,
@@ -130,6 +142,7 @@ def write_report(out, profile: dict | None = None) -> Path:
             md = tables / f"{name}.md"
             if not md.is_file():
                 lines += [f"*Table `{name}` is missing (its notebook has not run).*", ""]
+                lines += error_markdown(name, errors.get(name))
                 continue
             table = pd.read_csv(tables / f"{name}.csv")
             if name in COMPARED:
@@ -141,6 +154,7 @@ def write_report(out, profile: dict | None = None) -> Path:
                 trends = trend_markdown(trend_readings(name, table))
                 lines += ["**Reading.**", "", *[f"- {t}" for t in text], ""]
                 lines += [trends, ""] if trends else []
+            lines += error_markdown(name, errors.get(name))
         for picture in pictures:
             if picture in COMPARED and picture in names:
                 continue  # drawn above, with its compact table
@@ -401,20 +415,118 @@ def campaign_summary(table: pd.DataFrame) -> list[str]:
             f"them holds; by the linearised bound: {int(table.pb_by_linearised.sum())}."
         )
     lines += not_certifiable_reading(table)
-    capped = [
-        f"{int(table[column].sum())} of the {name}"
-        for column, name in (
-            ("capped", "allocation method's"),
-            ("pb_capped", "pose-bound method's"),
-        )
+    lines += time_cap_reading(table)
+    return lines
+
+
+#: Per method, the table column that counts the instances whose search its time cap ended.
+_CAPPED = (("capped", "allocation method's"), ("pb_capped", "pose-bound method's"))
+
+
+def time_cap_reading(table: pd.DataFrame) -> list[str]:
+    """One sentence on the searches of a verification table (of one model and reading)
+    that their time cap ended before their node budget (``capped``, ``pb_capped``: records
+    with ``stopped`` / ``pb_stopped`` = ``'time'``): how many per method, in which cells,
+    and that those verdicts depend on the machine's speed; that no cap fired when none
+    did. ``[]`` for a table from before the columns."""
+    methods = [
+        (column, name)
+        for column, name in _CAPPED
         if column in table and table[column].notna().any()
     ]
-    if capped:
-        lines.append(
-            f"The time cap ended the search of {' and '.join(capped)} instances (their "
-            "verdicts depend on the machine's speed; node budgets decided the others)."
+    if not methods:
+        return []
+    counts = [int(pd.to_numeric(table[c], errors="coerce").fillna(0).sum()) for c, _ in methods]
+    if not any(counts):
+        names = " or the ".join(name for _, name in methods)
+        return [
+            f"The time cap ended no search of the {names} instances: node budgets (or a "
+            "finished search) decided them, so their verdicts do not depend on the machine's "
+            "speed."
+        ]
+    capped = [f"{n} of the {name}" for n, (_, name) in zip(counts, methods)]
+    cells = []
+    for _, row in table.iterrows():
+        per = [
+            f"{'allocation' if c == 'capped' else 'pose-bound'} {int(row[c])}"
+            for c, _ in methods
+            if pd.notna(row[c]) and row[c] > 0
+        ]
+        if per:
+            where = {k: v for k, v in row.items() if k not in ("model", "tolerance_units")}
+            cells.append(f"{instance_label(where) or 'the cell'}: {', '.join(per)}")
+    named = "; ".join(cells[:_NAMED_CELLS])
+    if len(cells) > _NAMED_CELLS:
+        named += f"; and {len(cells) - _NAMED_CELLS} more cells"
+    return [
+        f"**Time caps.** The time cap, not the node budget, ended the search of "
+        f"{' and '.join(capped)} instances ({named}): those verdicts depend on the machine's "
+        "speed (on a faster or less loaded machine the same budget may decide them, or "
+        "decide them otherwise); node budgets decided the others, the same on any machine."
+    ]
+
+
+def error_instances(out) -> dict[str, tuple[int, list[tuple[str, str]]]]:
+    """The campaign instances that ended ``'error'``, per verification table
+    (:data:`COMPARED`) whose records ``out/tables/<name>_records.csv`` exist: how many
+    records the file holds and, for each that ended ``'error'``, its label
+    (:func:`kpstudy.study.tables.instance_label`) and its error text. The REPORT
+    (:func:`error_markdown`) and ``kpstudy reproduce``
+    (:func:`kpstudy.study.reproduction.campaign_errors`) list them from here."""
+    found = {}
+    for name in COMPARED:
+        path = Path(out) / "tables" / f"{name}_records.csv"
+        if not path.is_file():
+            continue
+        records = pd.read_csv(path)
+        failed = records[records["status"] == "error"] if "status" in records else records[:0]
+        found[name] = (
+            len(records),
+            [(instance_label(row), _error_text(row.get("error"))) for _, row in failed.iterrows()],
         )
-    return lines
+    return found
+
+
+def _error_text(value) -> str:
+    """A record's ``error`` text, or what stands in for one it lacks."""
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return "(no error text stored)"
+    return str(value)
+
+
+def error_markdown(name: str, found: tuple[int, list[tuple[str, str]]] | None) -> list[str]:
+    """The REPORT's lines listing table ``name``'s instances that ended ``'error'``
+    (``found``: its entry of :func:`error_instances`): a sentence with their count, then a
+    bullet each (at most :data:`LISTED_ERRORS`, then a count of the rest); ``[]``
+    without any."""
+    if not found or not found[1]:
+        return []
+    total, failed = found
+    path = f"tables/{name}_records.csv"
+    lines = [
+        f"**Instances that could not be run.** {len(failed)} of the {total} records of "
+        f"[{path}]({path}) ended `error`: they have no verdict, count in the table's "
+        "`instances` and `errors` columns only (not in the verified rate), and a campaign "
+        "run with `--retry-errors` reruns them.",
+        "",
+    ]
+    for label, text in failed[:LISTED_ERRORS]:
+        lines.append(f"- {label}: {_code(text)}")
+    if len(failed) > LISTED_ERRORS:
+        lines.append(
+            f"- and {len(failed) - LISTED_ERRORS} more (every one: the rows of {path} "
+            "with status `error`)."
+        )
+    return lines + [""]
+
+
+def _code(text: str, limit: int = 300) -> str:
+    """``text`` as inline Markdown code on one line, at most ``limit`` characters."""
+    text = " ".join(str(text).split())
+    if len(text) > limit:
+        text = text[: limit - 1] + "…"
+    fence = "``" if "`" in text else "`"
+    return f"{fence} {text} {fence}" if fence == "``" else f"`{text}`"
 
 
 def not_certifiable_reading(table: pd.DataFrame) -> list[str]:

@@ -332,32 +332,17 @@ def reproduce(
 def campaign_errors(out: Path) -> None:
     """Print the campaign instances of the tables' records under ``out/tables`` that
     ended ``'error'``, a line each, and raise :class:`kpstudy.study.campaign.InstanceErrors`
-    with their count; nothing when there are none."""
-    import pandas as pd
-
+    with their count; nothing when there are none (the instances as the REPORT lists
+    them: :func:`kpstudy.study.report.error_instances`)."""
     from kpstudy.study.campaign import InstanceErrors
-    from kpstudy.study.table_runs import TABLES
+    from kpstudy.study.report import error_instances
 
     errors, total, files = [], 0, []
-    for name in TABLES:
-        path = Path(out) / "tables" / f"{name}_records.csv"
-        if not path.is_file():
-            continue
-        records = pd.read_csv(path)
-        total += len(records)
-        failed = records[records["status"] == "error"] if "status" in records else records[:0]
-        if len(failed):
-            files.append(str(path))
-        for _, row in failed.iterrows():
-            what = [name, row.get("model"), row.get("tolerance_units"), row.get("kind")]
-            what.append(f"image {row.get('image_id')}")
-            for column, label in (("alpha", "α"), ("kappa", "κ"), ("m", "m"), ("level", "level")):
-                if pd.notna(row.get(column)):
-                    what.append(f"{label}={row[column]:g}")
-            if pd.notna(row.get("overlapping")):
-                what.append("overlapping" if row["overlapping"] else "non-overlapping")
-            words = " ".join(str(w) for w in what if isinstance(w, str) or pd.notna(w))
-            errors.append(f"[reproduce] error: {words}: {row.get('error')}")
+    for name, (count, failed) in error_instances(out).items():
+        total += count
+        if failed:
+            files.append(str(Path(out) / "tables" / f"{name}_records.csv"))
+        errors += [f"[reproduce] error: {name} {label}: {text}" for label, text in failed]
     if errors:
         print("\n".join(errors), flush=True)
         raise InstanceErrors(
@@ -379,7 +364,9 @@ def compare_results(a, b) -> dict[str, str]:
     (:func:`is_timing`) aside, and every checkpoint's weights (``models/*.pt``): a
     verdict that hangs on a time cap shows as a differing ``status``, ``stopped`` or
     ``capped`` cell. Returns ``{path relative to the folder: 'same' or what differs}``
-    over the files of either folder.
+    over the files of either folder; what differs in a verification table or its records
+    then names, apart, the cells where a time cap rather than the node budget ended a
+    search in either run (:func:`kpstudy.study.comparison.time_caps`).
 
     Examples
     --------
@@ -394,6 +381,7 @@ def compare_results(a, b) -> dict[str, str]:
     import pandas as pd
 
     from kpstudy.models.training import load_checkpoint, weights_digest
+    from kpstudy.study.comparison import time_caps
 
     roots = []
     for name, root in (("a", a), ("b", b)):
@@ -417,18 +405,22 @@ def compare_results(a, b) -> dict[str, str]:
             da, db = (weights_digest(load_checkpoint(p)[1]["model"]) for p in (pa, pb))
             out[rel] = "same" if da == db else "weights differ"
         else:
-            ta, tb = pd.read_csv(pa), pd.read_csv(pb)
+            read = (pd.read_csv(pa), pd.read_csv(pb))
+            ta, tb = read
             if list(ta.columns) != list(tb.columns) or len(ta) != len(tb):
-                out[rel] = f"shape differs: {ta.shape} against {tb.shape}"
+                out[rel] = f"shape differs: {ta.shape} against {tb.shape}" + time_caps(*read)
                 continue
             cols = [c for c in ta.columns if not is_timing(c)]
             ta, tb = (t[cols].astype(object).where(t[cols].notna(), "") for t in (ta, tb))
-            differs = (ta.astype(str) != tb.astype(str)).sum()
+            unequal = ta.astype(str) != tb.astype(str)
+            differs = unequal.sum()
             differs = differs[differs > 0]
             out[rel] = (
                 "same"
                 if differs.empty
-                else "cells differ: " + ", ".join(f"{c} ({n})" for c, n in differs.items())
+                else "cells differ: "
+                + ", ".join(f"{c} ({n})" for c, n in differs.items())
+                + time_caps(*read, unequal.any(axis=1).to_numpy())
             )
     return out
 

@@ -70,6 +70,7 @@ __all__ = [
     "PAPER_T_LOCAL",
     "PAPER_T_PROB",
     "PAPER_T_RESNET",
+    "instance_label",
     "plot_pose_bounds",
     "pose_bound_ratios",
     "reading_comparison",
@@ -299,6 +300,55 @@ def _times(values: pd.Series, prefix: str) -> dict[str, float]:
     q1, median, q3 = np.quantile(values.to_numpy(np.float64), [0.25, 0.5, 0.75])
     numbers = (values.mean(), values.std(ddof=0), median, q1, q3)
     return {f"{prefix}{c[4:]}": float(v) for c, v in zip(_TIME_COLUMNS, numbers)}
+
+
+def instance_label(row) -> str:
+    """The words that name a campaign record or a verification table's cell: model,
+    tolerance reading, kind, image id, α, κ, m, level, overlapping or not, each where
+    ``row`` (a record or table row: a dict or Series, stored or read back from CSV) has
+    it and it is not NaN.
+
+    Examples
+    --------
+    >>> instance_label(dict(model="cnn", tolerance_units="heatmap", kind="objects",
+    ...                     image_id=3, alpha=1.5, kappa=1.0, m=2, overlapping=False))
+    'cnn heatmap objects image 3 α=1.5 κ=1 m=2 non-overlapping'
+    >>> instance_label(dict(kind="contrast", level=5e-4, kappa=1.0, alpha=1.0, m=float("nan")))
+    'contrast α=1 κ=1 level=0.0005'
+    """
+    words = [_word(row.get(c)) for c in ("model", "tolerance_units", "kind")]
+    if _present(row.get("image_id")):
+        words.append(f"image {_word(row['image_id'])}")
+    for column, label in (("alpha", "α"), ("kappa", "κ"), ("m", "m"), ("level", "level")):
+        if _present(row.get(column)):
+            words.append(f"{label}={_word(row[column])}")
+    if _present(row.get("overlapping")):
+        overlapping = row["overlapping"]
+        if isinstance(overlapping, str):  # CSV text of a column mixing bools and blanks
+            overlapping = overlapping.strip().lower() in ("true", "1")
+        words.append("overlapping" if overlapping else "non-overlapping")
+    return " ".join(w for w in words if w)
+
+
+def _present(value) -> bool:
+    """Whether a record's field holds a value (not None, NaN or blank)."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return False
+    return not (isinstance(value, (float, np.floating)) and np.isnan(value))
+
+
+def _word(value) -> str:
+    """A field's value as a word: whole numbers as integers (``3``, ``1``), others by
+    ``:g`` (``1.5``, ``0.0005``), ``''`` for an absent one."""
+    if not _present(value):
+        return ""
+    if isinstance(value, (bool, np.bool_)):
+        return str(bool(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return str(int(value)) if float(value).is_integer() else f"{value:g}"
+    return str(value)
 
 
 def _dv(cell: pd.DataFrame) -> tuple[float, float]:
