@@ -578,6 +578,57 @@ def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, mon
     assert refined["pb_pixels"] == [1] * len(centers)
 
 
+@pytest.mark.parametrize(
+    "first, refinement, expected",
+    [
+        ("time", "nodes", "time"),
+        ("time", None, "time"),
+        ("nodes", "time", "time"),
+        ("nodes", "nodes", "nodes"),
+    ],
+)
+def test_a_time_cap_on_any_of_the_searches_a_cell_used_is_in_its_record(
+    scene, monkeypatch, first, refinement, expected
+):
+    """Issue 62, part 3: ``pb_stopped`` is ``'time'`` when the time cap ended the first
+    search or a focused round, whichever stopped last, in every cell whose regions came
+    from that search (also a cell that reuses the hull's shared searches); a cell decided
+    by the first search alone reports that one's. The searches are faked: no timing."""
+    seed, R, t, factors, _ = scene
+    eps, _ = _far_tolerance(scene)
+    centers, pooling, cell, far = _stride1_cells(scene)
+    seed_lam = torch.zeros(1, dtype=torch.float64)
+    calls = []
+
+    def search(backbone, hull, centers_, stride, search, focus=None, resume=None, witnesses=None):
+        """The first search (stopping on ``first``) leaves keypoint 0's far pixel possible;
+        a focused one (stopping on ``refinement``) removes it."""
+        calls.append(focus is None)
+        possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
+        if focus is None:
+            possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
+        witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
+        stats = {"stopped": first if focus is None else refinement}
+        found = Regions([HM * HM] * len(centers), possible, witnesses, 0.0, 1, stats)
+        return found, pb.region_pixels(found, pooling, HM)
+
+    monkeypatch.setattr(pb, "search_regions", search)
+    monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
+    M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves the tight Ξ open
+    loose = np.full(6, 1e9)  # ... and not this one: no focused round
+    args = (_Peaks(centers), _hull(), seed, R, t, M)
+    alone = pb.pose_bound(*args, eps, random_corners=4, refine_nodes=4)
+    assert calls == [True, False] and alone["pb_refined"] == 1
+    assert alone["pb_status"] == "holds" and alone["pb_stopped"] == expected
+    calls.clear()
+    hull = pb.HullPoseBound(*args, random_corners=4, refine_nodes=4)
+    records = [hull.decide(e) for e in (eps, loose, eps)]
+    assert calls == [True, False]  # the third cell reuses both searches
+    assert [r["pb_refined"] for r in records] == [1, 0, 1]
+    assert [r["pb_status"] for r in records] == ["holds"] * 3
+    assert [r["pb_stopped"] for r in records] == [expected, first, expected]
+
+
 def test_the_start_depth_grows_with_the_hulls_perturbed_images(scene):
     """``start_splits`` adds ⌈start_splits · n⌉ splits for a hull of n perturbed images (at
     most MAX_START_DEPTH); a negative or non-numeric value is refused by name."""

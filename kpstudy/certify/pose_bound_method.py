@@ -278,7 +278,7 @@ class HullPoseBound:
     max_nodes : int, optional
         Most branch-and-bound nodes of the search: a budget that gives the same regions on
         any machine (``timeout`` then only caps a slow one, and ``pb_stopped`` says which
-        fired).
+        fired: ``'time'`` if the cap ended any of the searches, refinements included).
     start_depth : int
         Splits of the hull before the first bounds
         (:func:`kpstudy.verify.reachable_argmax`).
@@ -375,9 +375,11 @@ class HullPoseBound:
             ``pb_time`` (s; the shared steps this cell used, the search, the enumeration
             and the attack, each counted in full, as if it ran alone); ``pb_nodes``
             (with the refinement's); ``pb_refined`` (the refinement's nodes, 0 if none);
-            ``pb_stopped`` (what ended the search early: ``'nodes'``, ``'time'``,
-            ``'witness'`` when the seed, a vertex or a random image of the hull was
-            already a counterexample and no node was bounded, or None); ``pb_complete``
+            ``pb_stopped`` (what ended the search early: ``'time'`` when the time cap
+            ended the first search or any focused round whose regions this verdict used,
+            else what ended the last of them, ``'nodes'`` or None; ``'witness'`` when the
+            seed, a vertex or a random image of the hull was already a counterexample and
+            no node was bounded); ``pb_complete``
             (possible = reached); ``pb_pixels`` (possible pixels per keypoint);
             ``pb_counterexample`` (λ of the witness image, or None); ``pb_stride``;
             ``pb_method``.
@@ -400,6 +402,9 @@ class HullPoseBound:
         else:
             regions, pixels = self._shared("search", lambda: self._search(first))
         verdict = self._judge(eps, kappa, regions, pixels, early)
+        # A time cap that ended any search this cell's regions came from (the first or a
+        # focused round, shared or not) is recorded, whatever stopped the last one.
+        capped = regions.stats["stopped"] == "time"
         refined = 0  # second-search nodes; each round aims at what the last one left
         while verdict["status"] == "unknown" and refined < self.refine:
             budget = self.refine - refined
@@ -411,7 +416,9 @@ class HullPoseBound:
                 key, functools.partial(self._refined, regions, focus, budget)
             )
             refined += regions.nodes - verdict["nodes"]
+            capped |= regions.stats["stopped"] == "time"
             verdict = self._judge(eps, kappa, regions, pixels, None)
+        stopped = "witness" if skipped else "time" if capped else regions.stats["stopped"]
         return {
             "pb_status": verdict["status"],
             "pb_rule": verdict["rule"],
@@ -423,7 +430,7 @@ class HullPoseBound:
             "pb_time": self._spent + time.perf_counter() - start,
             "pb_nodes": regions.nodes,
             "pb_refined": refined,
-            "pb_stopped": "witness" if skipped else regions.stats["stopped"],
+            "pb_stopped": stopped,
             "pb_complete": regions.complete,
             "pb_pixels": [len(p) for p in pixels],
             "pb_counterexample": verdict["counterexample"],
