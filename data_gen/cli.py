@@ -47,6 +47,12 @@ def main(argv=None) -> int:
         "--input-size", type=int, default=64, help="model input side for blocks/brightness/contrast"
     )
     pt.add_argument("--levels", type=float, nargs="+", help="brightness b or contrast c values")
+    pt.add_argument(
+        "--overlapping-share",
+        type=float,
+        help="objects: share of each seed's patches centred on the airplane, in [0, 1] "
+        "(default: all at random places)",
+    )
     pt.add_argument("--overwrite", action="store_true", help="replace an existing set of this kind")
 
     ga = sub.add_parser("gallery", help="draw renders, occluders and perturbations to PNG figures")
@@ -84,6 +90,7 @@ def main(argv=None) -> int:
                 input_size=args.input_size,
                 levels=args.levels,
                 overwrite=args.overwrite,
+                overlapping_share=args.overlapping_share,
             )
             print(f"{args.kind} perturbations written to {out}")
         else:

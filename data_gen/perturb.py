@@ -9,7 +9,11 @@ test split:
   shadow) at a random place, drawn among the occluders whose patch side at the
   image's true ground scale is 8–150 px at 1920 px image width (scaled with the
   width). ``overlapping`` iff the patch's alpha meets the airplane mask. Stored as
-  PNG at the render's resolution.
+  PNG at the render's resolution. With ``overlapping_share`` s, the first
+  ``round(s · per_seed)`` patches of each seed image are centred on a pixel drawn
+  uniformly among the airplane-mask pixels (so that enough of them overlap for the
+  overlapping hulls), the rest at random places as before; ``overlapping`` is still
+  read from the patch's alpha and the mask.
 - ``blocks``: in model-input space (``input_size``), per seed image 4 images with a
   3×3 block of uniform random values in [0, 255] away from the airplane
   (non-overlapping) and 4 with the block centred on a random visible keypoint
@@ -75,8 +79,15 @@ def _ground_scale(u: float, v: float, image: dict, ground_z: float) -> float:
 
 
 def _objects(
-    data_dir: Path, coco: dict, ids: list[int], staging: Path, per_seed: int, seed: int
+    data_dir: Path,
+    coco: dict,
+    ids: list[int],
+    staging: Path,
+    per_seed: int,
+    seed: int,
+    share: float | None = None,
 ) -> list[dict]:
+    aimed_count = 0 if share is None else round(share * per_seed)
     images = {im["id"]: im for im in coco["images"]}
     poses = {a["image_id"]: a["pose"] for a in coco["annotations"]}
     ground_z = coco["categories"][0]["ground_z"]
@@ -88,6 +99,12 @@ def _objects(
         picture = read_image(data_dir / info["file_name"])
         mask = cv2.imread(str(data_dir / info["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
         H, W = mask.shape
+        airplane = np.argwhere(mask)[:, ::-1].astype(float)  # (u, v) of every mask pixel
+        if aimed_count and not len(airplane):
+            raise RuntimeError(
+                f"objects: image {image_id} has no airplane pixel to centre a patch on "
+                "(overlapping_share)"
+            )
         cap = max(int(round(PATCH_PX_AT_1920 * W / 1920)), 4)
         least = max(int(round(MIN_PATCH_PX_AT_1920 * W / 1920)), 3)
         light = patch_light(
@@ -95,9 +112,13 @@ def _objects(
         )
         for k in range(per_seed):
             rng = np.random.default_rng([seed, image_id, k])
+            aimed = k < aimed_count
             for _ in range(100):
                 occluder = catalog[rng.integers(len(catalog))]
-                centre = rng.uniform((0, 0), (W - 1, H - 1))
+                if aimed:
+                    centre = airplane[rng.integers(len(airplane))]
+                else:
+                    centre = rng.uniform((0, 0), (W - 1, H - 1))
                 scale = _ground_scale(*centre, info, ground_z)
                 if not least <= max(occluder.mesh.extents[:2]) * scale <= cap:
                     continue
@@ -115,19 +136,20 @@ def _objects(
             perturbed, alpha = paste(picture, patch, (x, y))
             name = f"{image_id:06d}_{k:02d}.png"
             write_png(staging / name, perturbed)
-            meta.append(
-                {
-                    "image_id": image_id,
-                    "file": name,
-                    "overlapping": bool(np.any((alpha > 0) & mask)),
-                    "occluder": occluder.name,
-                    "family": occluder.family,
-                    "yaw_deg": yaw,
-                    "px_per_m": scale,
-                    "top_left": [x, y],
-                    "patch_size": [w, h],
-                }
-            )
+            row = {
+                "image_id": image_id,
+                "file": name,
+                "overlapping": bool(np.any((alpha > 0) & mask)),
+                "occluder": occluder.name,
+                "family": occluder.family,
+                "yaw_deg": yaw,
+                "px_per_m": scale,
+                "top_left": [x, y],
+                "patch_size": [w, h],
+            }
+            if share is not None:  # rows of the default sets stay as they were
+                row["aimed"] = aimed  # centre drawn among the airplane-mask pixels
+            meta.append(row)
     return meta
 
 
@@ -234,6 +256,7 @@ def make_perturbations(
     input_size=64,
     levels=None,
     overwrite: bool = False,
+    overlapping_share: float | None = None,
 ) -> Path:
     """Write one perturbation set into ``data_dir/perturbations/<kind>/`` (module docstring).
 
@@ -252,6 +275,12 @@ def make_perturbations(
         Model-input size of the blocks and global perturbations (64 CNN, 256 ResNet-18).
     levels : sequence of float, optional
         Brightness b (defaults 1, 2) or contrast c (defaults 5e-4, 5e-3, 1e-2).
+    overlapping_share : float in [0, 1], optional
+        Objects only: the first ``round(overlapping_share · per_seed)`` (Python's
+        ``round``) patches of each seed image are centred on a pixel drawn uniformly
+        among its airplane-mask pixels, the rest anywhere in the image. None (default):
+        all anywhere, the set unchanged. Recorded in ``meta.json``'s config (and each
+        row's ``aimed``) only when given; ``overlapping`` stays alpha ∩ mask.
 
     Returns
     -------
@@ -278,6 +307,7 @@ def make_perturbations(
     )
     if len(size) != 2 or min(size) < BLOCK:
         raise ValueError(f"input_size: expected a model-input size ≥ {BLOCK}, got {input_size}")
+    share = _check_share(overlapping_share, kind)
     out = check_output_dir(data_dir / "perturbations" / kind, overwrite)
     config = {
         "kind": kind,
@@ -287,9 +317,11 @@ def make_perturbations(
         "input_size": list(size),
         "levels": levels,
     }
+    if share is not None:  # the default set's config (and so its reuse) stays as it was
+        config["overlapping_share"] = share
     with staged_directory(out, config) as (staging, _):
         if kind == "objects":
-            meta = _objects(data_dir, coco, ids, staging, int(per_seed), seed)
+            meta = _objects(data_dir, coco, ids, staging, int(per_seed), seed, share)
         elif kind == "blocks":
             meta = _blocks(data_dir, coco, ids, staging, int(per_seed), seed, size)
         else:
@@ -298,6 +330,21 @@ def make_perturbations(
             staging / "meta.json", json.dumps({"config": config, "images": meta}, indent=1)
         )
     return out
+
+
+def _check_share(share, kind: str) -> float | None:
+    """``overlapping_share`` as a float in [0, 1], or None; ValueError naming it."""
+    if share is None:
+        return None
+    if (
+        isinstance(share, (bool, np.bool_))
+        or not isinstance(share, (int, float, np.integer, np.floating))
+        or not 0 <= share <= 1  # NaN fails too
+    ):
+        raise ValueError(f"overlapping_share: expected a number in [0, 1] or None, got {share!r}")
+    if kind != "objects":
+        raise ValueError(f"overlapping_share: applies to objects only, not {kind}")
+    return float(share)
 
 
 def load_perturbations(data_dir, kind: str) -> dict:

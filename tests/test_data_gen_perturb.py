@@ -1,5 +1,7 @@
 """Perturbation sets: each perturbed image differs from its seed exactly where it should."""
 
+import hashlib
+import shutil
 import subprocess
 import sys
 
@@ -7,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from data_gen.cli import main as data_gen_main
 from data_gen.dataset import generate_dataset, load_coco, read_image
 from data_gen.perturb import (
     PATCH_PX_AT_1920,
@@ -140,3 +143,62 @@ def test_perturb_cli_errors(data, tmp_path):
     too_many = run("--data", str(data), "--kind", "contrast", "--seeds", "50", "--overwrite")
     assert too_many.returncode == 2 and "seeds: asked for 50" in too_many.stderr
     assert load_perturbations(data, "contrast")["config"]["levels"] == [5e-4, 1e-2]  # untouched
+
+
+# The tiny dataset's objects set (seeds=2, per_seed=4, seed=0) as the code before
+# ``overlapping_share`` wrote it: sha256 of meta.json, and of the decoded pixels in row order.
+DEFAULT_OBJECTS_META = "2db583d8e19e920e1b1e4830c4465c850dabe3dd227e8f4d7ffe7ffd925f9baf"
+DEFAULT_OBJECTS_PIXELS = "993e590d5c5c1617fd7b64d83bde2ead348964c8db13c2bb081a51fdb05be7c6"
+
+
+def test_objects_overlapping_share_centres_patches_on_the_airplane(tiny_dataset, tmp_path):
+    data = shutil.copytree(tiny_dataset, tmp_path / "data")
+    folder = data / "perturbations/objects"
+    make_perturbations(data, "objects", seeds=2, per_seed=4, seed=0)
+    default = load_perturbations(data, "objects")
+    assert "overlapping_share" not in default["config"]
+    assert all("aimed" not in row for row in default["images"])
+    pixels = {row["file"]: read_image(folder / row["file"]) for row in default["images"]}
+    digest = hashlib.sha256(b"".join(p.tobytes() for p in pixels.values())).hexdigest()
+    meta_digest = hashlib.sha256((folder / "meta.json").read_bytes()).hexdigest()
+    assert (meta_digest, digest) == (DEFAULT_OBJECTS_META, DEFAULT_OBJECTS_PIXELS)
+
+    args = ["perturb", "--data", str(data), "--kind", "objects", "--seeds", "2"]
+    args += ["--per-seed", "4", "--overlapping-share", "0.5", "--overwrite"]
+    assert data_gen_main(args) == 0
+    shared = load_perturbations(data, "objects")
+    assert shared["config"] == default["config"] | {"overlapping_share": 0.5}
+    images = {im["id"]: im for im in load_coco(data)["images"]}
+    for image_id in shared["config"]["ids"]:
+        rows = [r for r in shared["images"] if r["image_id"] == image_id]
+        assert [r["aimed"] for r in rows] == [True, True, False, False]
+        assert np.mean([r["overlapping"] for r in rows]) >= 0.5
+        mask = cv2.imread(str(data / images[image_id]["mask_file"]), cv2.IMREAD_GRAYSCALE) > 0
+        for row in rows:
+            perturbed = read_image(folder / row["file"])
+            if row["aimed"]:  # centred on an airplane pixel: the patch's box meets the mask
+                (x, y), (w, h) = row["top_left"], row["patch_size"]
+                assert mask[y : y + h, x : x + w].any()
+            else:  # the same draws as the default set's
+                np.testing.assert_array_equal(perturbed, pixels[row["file"]])
+
+
+@pytest.mark.parametrize("share", [1.5, -0.1, float("nan"), True, "0.5"])
+def test_overlapping_share_refused(tiny_dataset, share):
+    with pytest.raises(ValueError, match=r"^overlapping_share: expected a number in \[0, 1\]"):
+        make_perturbations(tiny_dataset, "objects", seeds=1, overlapping_share=share)
+    assert not list(tiny_dataset.glob("perturbations/*objects*"))  # nor .objects.partial
+
+
+def test_overlapping_share_refused_for_other_kinds_and_on_the_cli(tiny_dataset, capsys):
+    with pytest.raises(ValueError, match="^overlapping_share: applies to objects only"):
+        make_perturbations(tiny_dataset, "blocks", seeds=1, overlapping_share=0.5)
+    args = ["perturb", "--data", str(tiny_dataset), "--kind", "objects", "--seeds", "1"]
+    with pytest.raises(SystemExit) as exit_:
+        data_gen_main([*args, "--overlapping-share", "2"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert err == (
+        "data_gen perturb: error: overlapping_share: expected a number in [0, 1] or None, got 2.0\n"
+    )
+    assert not list(tiny_dataset.glob("perturbations/*objects*"))  # nor .objects.partial
