@@ -74,7 +74,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="kpstudy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="run the study's stages and write results/<profile>/")
-    rep.add_argument("--profile", default="quick", help="quick (default) or paper")
+    rep.add_argument(
+        "--profile", default="quick", help="quick (default, the smoke test), standard or paper"
+    )
     rep.add_argument("--out", default="results", help="results root folder")
     rep.add_argument("--images", type=int, help="override T-prob's number of views")
     rep.add_argument("--samples", type=int, help="override the Monte Carlo samples per view")
@@ -82,6 +84,11 @@ def main(argv=None) -> int:
     rep.add_argument("--timeout", type=float, help="override the seconds per CNN instance")
     rep.add_argument("--workers", type=int, help="local processes per campaign")
     rep.add_argument("--stages", nargs="+", help="data, train, notebooks, report (default all)")
+    rep.add_argument(
+        "--notebooks",
+        nargs="+",
+        help="run only these notebooks of the notebooks stage, e.g. 06_local (default all)",
+    )
     rep.add_argument("--scheduler", help="Dask scheduler address for the campaigns")
     rep.add_argument(
         "--retrain-friendly",
@@ -255,6 +262,7 @@ def main(argv=None) -> int:
                 prof,
                 args.out,
                 stages=args.stages or STAGES,
+                notebooks=args.notebooks,
                 scheduler=args.scheduler,
                 retrain_friendly=args.retrain_friendly,
             )

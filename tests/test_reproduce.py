@@ -4,6 +4,7 @@ under papermill → REPORT.md; a rerun finds everything current."""
 import json
 import re
 from dataclasses import replace
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -146,6 +147,7 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
     [
         (dict(seeds=9), "seeds: expected at most perturbed_seeds=8"),
         (dict(timeout=0), "timeout: expected a positive number"),
+        (dict(overlapping_share=1.5), "overlapping_share: expected None or [0, 1], got 1.5"),
         (dict(speed=2), "overrides: unknown profile fields ['speed']"),
         (dict(nodes=0), "nodes: expected a positive number"),
         (dict(tolerance_units=("pixels",)), "tolerance_units: expected a tuple of distinct"),
@@ -234,3 +236,31 @@ def test_compare_cli_exits_1_on_a_difference_and_2_on_bad_input(tmp_path, capsys
         main(["compare", str(a), str(tmp_path / "none")])
     assert exit_.value.code == 2
     assert capsys.readouterr().err.strip().startswith("kpstudy compare: error: b: expected")
+
+
+def test_the_standard_profile_reaches_the_campaigns_and_notebooks_run_alone(tmp_path, monkeypatch):
+    """Its counts and every method's budgets are what notebooks 06–08 get; ``only`` runs the
+    named notebooks and no other."""
+    import papermill
+
+    from kpstudy.study import reproduction as module
+
+    ran = {}
+
+    def execute(source, target, parameters, **_):
+        ran[Path(source).stem] = parameters
+
+    monkeypatch.setattr(papermill, "execute_notebook", execute)
+    prof = profile("standard")
+    assert prof.seeds >= 50 and prof.resnet_seeds >= 50 and prof.method == "auto"
+    module.run_notebooks(prof, tmp_path, progress=False, only=["06_local", "07_global"])
+    assert sorted(ran) == ["06_local", "07_global"]
+    local, global_ = ran["06_local"], ran["07_global"]
+    assert local["seeds"] == 50 and local["method"] == "auto" and local["nodes"] == prof.nodes
+    for model in ("cnn", "cnn_patch_smooth"):  # every model's pose-bound method: the zonotope
+        assert local["pose_bound"][model]["pose_bound_method"] == "zonotope"
+        assert local["pose_bound"][model]["pose_bound_nodes"] >= 1
+        assert global_["pose_bound"][model]["pose_bound_method"] == "zonotope"
+    assert local["tolerance_units"] == ["heatmap", "paper"]
+    with pytest.raises(ValueError, match=r"^notebooks: expected some of \["):
+        reproduce(prof, tmp_path, stages=("notebooks",), notebooks=["09_nothing"])

@@ -19,7 +19,9 @@ Stages, in order; each is skipped when its outputs are current:
 4. **report**: ``REPORT.md``, every table and figure with a short reading of the trends
    (:mod:`kpstudy.study.report`).
 
-The ``quick`` profile runs everything at reduced counts on 2 CPU cores; ``paper`` has the
+The ``quick`` profile runs everything at reduced counts on 2 CPU cores (a smoke test: 3
+seeds a cell); ``standard`` runs the tables at the study's scale on 2 cores (50 seeds a
+table, every method with the zonotope under node budgets, hours); ``paper`` has the
 paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and is meant for a
 GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
 """
@@ -108,6 +110,10 @@ class Profile:
         friendly CNN's recipe keeps its own).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
+    overlapping_share : the share of each seed's object occlusions whose patch is aimed at
+        the airplane (:func:`data_gen.perturb.make_perturbations`; ``None``: every patch at
+        a uniformly random place, about one in ten overlapping), so that the overlapping
+        cells of T-local get enough seeds.
     workers : local processes per campaign, each with ``cpu_count // workers`` threads
         (quick: one, so that every hull has both cores and the tables' per-hull times
         are 2-core times).
@@ -137,11 +143,16 @@ class Profile:
     figure_images: int = 50
     workers: int = 1
     seed: int = 0
+    overlapping_share: float | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
             if f.type in ("str", "dict", "tuple") or f.name == "seed" or value is None:
+                continue
+            if f.name == "overlapping_share":
+                if isinstance(value, bool) or not 0 <= value <= 1:
+                    raise ValueError(f"overlapping_share: expected None or [0, 1], got {value!r}")
                 continue
             if isinstance(value, bool) or not value > 0:
                 raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
@@ -228,6 +239,20 @@ GLOBAL_POSE_BOUND = {
     for model in ("cnn", FRIENDLY_MODEL)
 }
 
+#: The standard profile's pose-bound method in T-local: the friendly CNN as in the quick
+#: profile; the natural CNN with the zonotope too (forward bounds decide none of its
+#: object hulls), from the same start depth, within a node budget of the same order as
+#: the allocation method's, so that an `unknown` is the method's at that budget.
+STANDARD_LOCAL_POSE_BOUND = {
+    "cnn": dict(
+        pose_bound_method="zonotope",
+        pose_bound_timeout=600.0,
+        pose_bound_nodes=8,
+        pose_bound_start_splits=1.75,
+    ),
+    FRIENDLY_MODEL: dict(LOCAL_POSE_BOUND[FRIENDLY_MODEL]),
+}
+
 PROFILES = {
     "quick": Profile(
         "quick",
@@ -247,6 +272,30 @@ PROFILES = {
         nodes=2,
         workers=1,
         precision="bfloat16",
+    ),
+    # The study's scale on 2 cores: the quick profile's dataset and models, 60 test seed
+    # images with perturbation sets (50 per table), every method with the zonotope under
+    # a node budget per instance or hull, T-prob at 1000 views × 5000 samples.
+    "standard": Profile(
+        "standard",
+        dataset_images=2000,
+        dataset_size="640x400",
+        perturbed_seeds=60,
+        cnn_epochs=16,
+        resnet_epochs=1,
+        resnet_images=256,
+        images=1000,
+        samples=5000,
+        seeds=50,
+        resnet_seeds=50,
+        timeout=600.0,
+        resnet_timeout=600.0,
+        method="auto",
+        nodes=16,
+        local_pose_bound=STANDARD_LOCAL_POSE_BOUND,
+        workers=1,
+        precision="bfloat16",
+        overlapping_share=0.5,
     ),
     "paper": Profile(
         "paper",
@@ -291,13 +340,15 @@ def reproduce(
     out_root="results",
     *,
     stages=STAGES,
+    notebooks=None,
     scheduler: str | None = None,
     progress: bool = True,
     retrain_friendly: bool = False,
 ) -> Path:
     """Run ``stages`` of the profile and return its results folder ``out_root/<name>``
-    (``retrain_friendly``: train the verification-friendly CNN even where the shipped
-    checkpoint fits). When the notebooks or the report ran and a campaign's records
+    (``notebooks``: names of the notebooks stage's notebooks to run, e.g. ``['06_local']``,
+    default all; ``retrain_friendly``: train the verification-friendly CNN even where the
+    shipped checkpoint fits). When the notebooks or the report ran and a campaign's records
     there hold instances that ended ``'error'``, every stage still runs; then they are
     printed and :class:`kpstudy.study.campaign.InstanceErrors` is raised with their count
     (:func:`campaign_errors`)."""
@@ -305,6 +356,10 @@ def reproduce(
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"stages: expected some of {STAGES}, got {unknown}")
+    names = sorted(p.stem for p in NOTEBOOKS.glob("[0-9]*.ipynb"))
+    unknown = [n for n in notebooks or () if n not in names]
+    if unknown:
+        raise ValueError(f"notebooks: expected some of {names}, got {unknown}")
     out = Path(out_root) / prof.name
     out.mkdir(parents=True, exist_ok=True)
     timings = {}
@@ -317,7 +372,7 @@ def reproduce(
         elif stage == "train":
             train_models(prof, out, progress=progress, retrain_friendly=retrain_friendly)
         elif stage == "notebooks":
-            run_notebooks(prof, out, scheduler=scheduler, progress=progress)
+            run_notebooks(prof, out, scheduler=scheduler, progress=progress, only=notebooks)
         else:
             from kpstudy.study.report import write_report
 
@@ -455,11 +510,13 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
         size = sizes.get(kind, BACKBONES["cnn"].input_size)
         meta = folder / "perturbations" / kind / "meta.json"
         config = json.loads(meta.read_text())["config"] if meta.is_file() else None
+        share = {"overlapping_share": prof.overlapping_share} if kind == "objects" else {}
         if (
             fresh
             or config is None
             or config["input_size"] != [size, size]
             or len(config["ids"]) != prof.perturbed_seeds
+            or config.get("overlapping_share") != share.get("overlapping_share")
         ):
             make_perturbations(
                 folder,
@@ -468,6 +525,7 @@ def data(prof: Profile, out: Path, *, progress: bool = True) -> Path:
                 seed=prof.seed,
                 input_size=size,
                 overwrite=True,
+                **share,
             )
     return folder
 
@@ -612,9 +670,15 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
 
 
 def run_notebooks(
-    prof: Profile, out: Path, *, scheduler: str | None = None, progress: bool = True
+    prof: Profile,
+    out: Path,
+    *,
+    scheduler: str | None = None,
+    progress: bool = True,
+    only=None,
 ) -> list[Path]:
-    """Execute every study notebook whose parameters or inputs changed."""
+    """Execute every study notebook (of ``only``'s names, when given) whose parameters or
+    inputs changed."""
     import tempfile
 
     import papermill
@@ -663,6 +727,8 @@ def run_notebooks(
     done.mkdir(parents=True, exist_ok=True)
     executed = []
     for name, params in parameters.items():
+        if only is not None and name not in only:
+            continue
         params = {"out": str(out), **params}
         source = NOTEBOOKS / f"{name}.ipynb"
         target = done / f"{name}.ipynb"
