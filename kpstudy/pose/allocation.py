@@ -335,7 +335,7 @@ def allocate_cells(
 
     The exact optimum over every asymmetric range, a MILP in ``4K`` integers with the
     offsets in its right-hand sides, is one to two orders of magnitude slower for a ``J``
-    a few per cent larger (docs/design.md §4.4).
+    up to a few units larger (docs/design.md §4.4).
 
     Parameters
     ----------
