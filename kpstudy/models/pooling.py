@@ -279,17 +279,7 @@ def keypoint_cells(lo, hi, heatmap_size) -> list[tuple[PoolParams, PoolParams]]:
     >>> horizontal, vertical.kernel
     (PoolParams(kernel=4, stride=4, pad_before=1, pad_after=1), 2)
     """
-    lo, hi = [_pair(c, "lo[k]") for c in lo], [_pair(c, "hi[k]") for c in hi]
-    if len(lo) != len(hi):
-        raise ValueError(f"hi: expected {len(lo)} rows (one per keypoint), got {len(hi)}")
-    H, W = _pair(heatmap_size, "heatmap_size")
-    return [
-        (
-            _range_params(lu, hu, W, (f"lo[{k}][0]", f"hi[{k}][0]", "heatmap_size[1]")),
-            _range_params(lv, hv, H, (f"lo[{k}][1]", f"hi[{k}][1]", "heatmap_size[0]")),
-        )
-        for k, ((lu, lv), (hu, hv)) in enumerate(zip(lo, hi))
-    ]
+    return _per_keypoint(lo, hi, heatmap_size, ("lo", "hi"), _range_params)
 
 
 def keypoint_pooling(centers, dv, heatmap_size) -> list[tuple[PoolParams, PoolParams]]:
@@ -310,16 +300,26 @@ def keypoint_pooling(centers, dv, heatmap_size) -> list[tuple[PoolParams, PoolPa
     >>> horizontal
     PoolParams(kernel=3, stride=3, pad_before=0, pad_after=2)
     """
-    centers, dv = [_pair(c, "centers[k]") for c in centers], [_pair(d, "dv[k]") for d in dv]
-    if len(centers) != len(dv):
-        raise ValueError(f"dv: expected {len(centers)} rows (one per center), got {len(dv)}")
+    return _per_keypoint(centers, dv, heatmap_size, ("centers", "dv"), _axis_params)
+
+
+def _per_keypoint(first, second, heatmap_size, names, axis_params) -> list:
+    """``[(axis_params(first[k][0], second[k][0], W), axis_params(…[1], H)) for k]`` with
+    each argument named in its errors (``names``: those of ``first`` and ``second``)."""
+    first = [_pair(x, f"{names[0]}[k]") for x in first]
+    second = [_pair(x, f"{names[1]}[k]") for x in second]
+    if len(first) != len(second):
+        raise ValueError(
+            f"{names[1]}: expected {len(first)} rows (one per keypoint), got {len(second)}"
+        )
     H, W = _pair(heatmap_size, "heatmap_size")
+    a, b = names
     return [
         (
-            _axis_params(u, du, W, (f"centers[{k}][0]", f"dv[{k}][0]", "heatmap_size[1]")),
-            _axis_params(v, dv_, H, (f"centers[{k}][1]", f"dv[{k}][1]", "heatmap_size[0]")),
+            axis_params(u, su, W, (f"{a}[{k}][0]", f"{b}[{k}][0]", "heatmap_size[1]")),
+            axis_params(v, sv, H, (f"{a}[{k}][1]", f"{b}[{k}][1]", "heatmap_size[0]")),
         )
-        for k, ((u, v), (du, dv_)) in enumerate(zip(centers, dv))
+        for k, ((u, v), (su, sv)) in enumerate(zip(first, second))
     ]
 
 

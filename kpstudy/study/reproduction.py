@@ -253,37 +253,35 @@ STANDARD_LOCAL_POSE_BOUND = {
     FRIENDLY_MODEL: dict(LOCAL_POSE_BOUND[FRIENDLY_MODEL]),
 }
 
+_QUICK = Profile(
+    "quick",
+    dataset_images=2000,
+    dataset_size="640x400",
+    perturbed_seeds=8,
+    cnn_epochs=16,
+    resnet_epochs=1,
+    resnet_images=256,
+    images=30,
+    samples=1000,
+    seeds=3,
+    resnet_seeds=2,
+    timeout=10.0,
+    resnet_timeout=20.0,
+    method="forward",
+    nodes=2,
+    workers=1,
+    precision="bfloat16",
+)
+
 PROFILES = {
-    "quick": Profile(
-        "quick",
-        dataset_images=2000,
-        dataset_size="640x400",
-        perturbed_seeds=8,
-        cnn_epochs=16,
-        resnet_epochs=1,
-        resnet_images=256,
-        images=30,
-        samples=1000,
-        seeds=3,
-        resnet_seeds=2,
-        timeout=10.0,
-        resnet_timeout=20.0,
-        method="forward",
-        nodes=2,
-        workers=1,
-        precision="bfloat16",
-    ),
+    "quick": _QUICK,
     # The study's scale on 2 cores: the quick profile's dataset and models, 60 test seed
     # images with perturbation sets (50 per table), every method with the zonotope under
     # a node budget per instance or hull, T-prob at 1000 views × 5000 samples.
-    "standard": Profile(
-        "standard",
-        dataset_images=2000,
-        dataset_size="640x400",
+    "standard": replace(
+        _QUICK,
+        name="standard",
         perturbed_seeds=60,
-        cnn_epochs=16,
-        resnet_epochs=1,
-        resnet_images=256,
         images=1000,
         samples=5000,
         seeds=50,
@@ -293,8 +291,6 @@ PROFILES = {
         method="auto",
         nodes=16,
         local_pose_bound=STANDARD_LOCAL_POSE_BOUND,
-        workers=1,
-        precision="bfloat16",
         overlapping_share=0.5,
     ),
     "paper": Profile(
