@@ -297,6 +297,8 @@ def test_not_certifiable_counts_in_its_own_column_and_the_report_says_per_alpha(
         "α = 1: 50% (κ = 1: 50%, κ = 1.5: 50%); α = 1.5: 25% (κ = 1: 0%, κ = 1.5: 50%) of "
         "the seeds."
     )
+    # Only the sound reading refuses a seed for its pixel grid: no sentence for 'paper'.
+    assert report.not_certifiable_reading(table[table.tolerance_units == "paper"]) == []
     compact = comparison.compact_table(table).set_index("method")
     assert compact.loc["alloc (heatmap)", "not_certifiable"] == 6
     assert compact.loc["alloc (paper)", "not_certifiable"] == 6
