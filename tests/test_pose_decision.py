@@ -545,26 +545,35 @@ def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(s
     assert pose._refine_focus(2 * eps + 100, verdict, regions, pixels, budget=1) is None
 
 
+def _far_pixel_search(scene, foci, nodes=(1, 1), stopped=(None, None)):
+    """A fake ``search_regions``: the first search (``nodes[0]`` nodes, stopping on
+    ``stopped[0]``) leaves keypoint 0's far pixel possible, a focused one (``nodes[1]``,
+    ``stopped[1]``) removes it; each call's focus is appended to ``foci``."""
+    centers, pooling, cell, far = _stride1_cells(scene)
+    seed_lam = torch.zeros(1, dtype=torch.float64)
+
+    def search(backbone, hull, centers_, stride, search, focus=None, resume=None, witnesses=None):
+        foci.append(focus)
+        first = focus is None
+        possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
+        if first:
+            possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
+        witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
+        stats = {"stopped": stopped[0] if first else stopped[1]}
+        found = Regions(
+            [HM * HM] * len(centers), possible, witnesses, 0.0, nodes[0 if first else 1], stats
+        )
+        return found, pb.region_pixels(found, pooling, HM)
+
+    return search
+
+
 def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, monkeypatch):
     seed, R, t, factors, _ = scene
     eps, _ = _far_tolerance(scene)
-    centers, pooling, cell, far = _stride1_cells(scene)
-    seed_lam = torch.zeros(1, dtype=torch.float64)
+    centers, _, cell, far = _stride1_cells(scene)
     foci = []
-
-    def search(backbone, hull, centers_, stride, search, focus=None, resume=None, witnesses=None):
-        """The first search leaves keypoint 0's far pixel possible; a focused one removes it."""
-        foci.append(focus)
-        possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
-        if focus is None:
-            possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
-        witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
-        nodes = 2 if focus is None else 1
-        stats = {"stopped": None}
-        found = Regions([HM * HM] * len(centers), possible, witnesses, 0.0, nodes, stats)
-        return found, pb.region_pixels(found, pooling, HM)
-
-    monkeypatch.setattr(pb, "search_regions", search)
+    monkeypatch.setattr(pb, "search_regions", _far_pixel_search(scene, foci, nodes=(2, 1)))
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
     M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves it open
     args = (_Peaks(centers), _hull(), seed, R, t, M, eps)
@@ -596,34 +605,21 @@ def test_a_time_cap_on_any_of_the_searches_a_cell_used_is_in_its_record(
     by the first search alone reports that one's. The searches are faked: no timing."""
     seed, R, t, factors, _ = scene
     eps, _ = _far_tolerance(scene)
-    centers, pooling, cell, far = _stride1_cells(scene)
-    seed_lam = torch.zeros(1, dtype=torch.float64)
-    calls = []
-
-    def search(backbone, hull, centers_, stride, search, focus=None, resume=None, witnesses=None):
-        """The first search (stopping on ``first``) leaves keypoint 0's far pixel possible;
-        a focused one (stopping on ``refinement``) removes it."""
-        calls.append(focus is None)
-        possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
-        if focus is None:
-            possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
-        witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
-        stats = {"stopped": first if focus is None else refinement}
-        found = Regions([HM * HM] * len(centers), possible, witnesses, 0.0, 1, stats)
-        return found, pb.region_pixels(found, pooling, HM)
-
+    centers, *_ = _stride1_cells(scene)
+    foci = []
+    search = _far_pixel_search(scene, foci, stopped=(first, refinement))
     monkeypatch.setattr(pb, "search_regions", search)
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
     M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves the tight Ξ open
     loose = np.full(6, 1e9)  # ... and not this one: no focused round
     args = (_Peaks(centers), _hull(), seed, R, t, M)
     alone = pb.pose_bound(*args, eps, random_corners=4, refine_nodes=4)
-    assert calls == [True, False] and alone["pb_refined"] == 1
+    assert [f is None for f in foci] == [True, False] and alone["pb_refined"] == 1
     assert alone["pb_status"] == "holds" and alone["pb_stopped"] == expected
-    calls.clear()
+    foci.clear()
     hull = pb.HullPoseBound(*args, random_corners=4, refine_nodes=4)
     records = [hull.decide(e) for e in (eps, loose, eps)]
-    assert calls == [True, False]  # the third cell reuses both searches
+    assert [f is None for f in foci] == [True, False]  # the third cell reuses both searches
     assert [r["pb_refined"] for r in records] == [1, 0, 1]
     assert [r["pb_status"] for r in records] == ["holds"] * 3
     assert [r["pb_stopped"] for r in records] == [expected, first, expected]
