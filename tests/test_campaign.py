@@ -281,7 +281,7 @@ def test_dask_and_process_pool_runs_equal_the_local_run(study, tmp_path):
 def test_run_hull_gives_each_cell_its_record_and_the_clipped_fraction(study):
     data, checkpoint = study
     seed = _seed(data)
-    settings = Settings(str(checkpoint), str(data), timeout=10, nodes=2, check_samples=0)
+    settings = Settings(str(checkpoint), str(data), timeout=600, nodes=2, check_samples=0)
     cells = [Instance("brightness", seed.image_id, a, k, level=2.0) for a, k in [(1, 1), (5, 2)]]
     both = run_hull(cells, settings)
     assert 0.0 <= both[0]["clipped_fraction"] < 1.0
