@@ -21,9 +21,9 @@ Stages, in order; each is skipped when its outputs are current:
 
 The ``quick`` profile runs everything at reduced counts on 2 CPU cores (a smoke test: 3
 seeds a cell); ``standard`` runs the tables at the study's scale on 2 cores (50 seeds a
-table, every method with the zonotope under node budgets, hours); ``paper`` has the
-paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and is meant for a
-GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
+table, every method with the zonotope under node budgets, not yet fitted to a run time);
+``paper`` has the paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and
+is meant for a GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
 """
 
 from __future__ import annotations
