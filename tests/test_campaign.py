@@ -159,6 +159,36 @@ def test_a_study_runs_every_reading_and_the_pose_bound_once(study, tmp_path):
         )
 
 
+def test_a_model_gets_its_own_allocation_budget(study, tmp_path):
+    data, checkpoint = study
+    options = dict(
+        grid_options=dict(alphas=[0.5], kappas=[1.0], ms=[2], overlapping=[True]),
+        timeout=30,
+        nodes=2,
+        check_samples=0,
+    )
+    own = dict(method="ibp", nodes=1)
+    records = run_study(
+        {"tiny": str(checkpoint), "same": str(checkpoint)},
+        data,
+        ["blocks"],
+        tmp_path,
+        allocation={"tiny": own},
+        **options,
+    )
+    assert (records[records.model == "tiny"].nodes <= 1).all()
+    stores = {p.name for p in tmp_path.glob("blocks-*.sqlite")}
+    assert len(stores) == 2  # the settings key the stores: the two budgets, two stores
+    alone = run_study({"same": str(checkpoint)}, data, ["blocks"], tmp_path / "alone", **options)
+    same = records[records.model == "same"].reset_index(drop=True)
+    assert list(same.status) == list(alone.status)
+    for bad in ({"vgg": own}, {"tiny": dict(start_splits=2)}):
+        with pytest.raises(ValueError, match=r"^allocation: expected \{model of checkpoints"):
+            run_study(
+                {"tiny": str(checkpoint)}, data, ["blocks"], tmp_path, allocation=bad, **options
+            )
+
+
 def test_certify_bad_input_is_named(study):
     data, checkpoint = study
     backbone, _ = load_checkpoint(checkpoint)

@@ -172,6 +172,15 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
             dict(local_pose_bound={"vgg": {}}),
             "local_pose_bound: expected {'cnn' or 'cnn_patch_smooth'",
         ),
+        (
+            dict(allocation={"vgg": {"nodes": 2}}),
+            "allocation: expected {'cnn' or 'cnn_patch_smooth': {setting: value}}",
+        ),
+        (dict(allocation={"cnn": {"nodes": 0}}), "allocation: nodes: expected None or a positive"),
+        (
+            dict(allocation={"cnn": {"method": "crown2"}}),
+            "allocation: method: expected 'auto' or one of",
+        ),
     ],
 )
 def test_bad_profiles_are_refused_before_any_work(overrides, message):
@@ -269,5 +278,6 @@ def test_the_standard_profile_reaches_the_campaigns_and_notebooks_run_alone(tmp_
         assert local["pose_bound"][model]["pose_bound_nodes"] >= 1
         assert global_["pose_bound"][model]["pose_bound_method"] == "zonotope"
     assert local["tolerance_units"] == ["heatmap", "paper"]
+    assert local["allocation"] == global_["allocation"] == prof.allocation
     with pytest.raises(ValueError, match=r"^notebooks: expected some of \["):
         reproduce(prof, tmp_path, stages=("notebooks",), notebooks=["09_nothing"])

@@ -777,6 +777,10 @@ def _stop(pool: ProcessPoolExecutor) -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+#: The :class:`Settings` fields a model's own allocation budget may set (:func:`run_study`).
+ALLOCATION_SETTINGS = ("method", "nodes", "timeout")
+
+
 def run_study(
     checkpoints: dict[str, str],
     data_dir,
@@ -786,6 +790,7 @@ def run_study(
     grid_options: dict,
     tolerance_units: Iterable[str] = ("heatmap",),
     pose_bound: dict[str, dict] | None = None,
+    allocation: dict[str, dict] | None = None,
     workers: int = 1,
     scheduler: str | None = None,
     progress: bool = False,
@@ -813,6 +818,11 @@ def run_study(
     pose_bound : dict, optional
         ``{model name: Settings fields of the pose-bound method}``; a model left out
         skips it.
+    allocation : dict, optional
+        ``{model name: {'method', 'nodes', 'timeout'}}``: the allocation method's bounds
+        and budget for that model in place of ``settings``' (e.g. forward bounds where
+        the zonotope cannot decide within any affordable budget); a model left out, or a
+        field left out, keeps ``settings``'.
     workers, scheduler, progress :
         :func:`run_campaign`'s.
     **settings :
@@ -826,14 +836,24 @@ def run_study(
     readings = list(tolerance_units)
     if not readings:
         raise ValueError("tolerance_units: expected one or more readings, got none")
+    allocation = allocation or {}
+    for model, chosen in allocation.items():
+        if (
+            model not in checkpoints
+            or not isinstance(chosen, dict)
+            or not set(chosen) <= set(ALLOCATION_SETTINGS)
+        ):
+            raise ValueError(
+                f"allocation: expected {{model of checkpoints: {{{', '.join(ALLOCATION_SETTINGS)}"
+                f"}}}}, got {model!r}: {chosen!r}"
+            )
     campaigns, labels = [], []
     try:
         for model, checkpoint in checkpoints.items():
             for units in readings:
                 extra = (pose_bound or {}).get(model, {}) if units == readings[0] else {}
-                config = Settings(
-                    str(checkpoint), str(data_dir), tolerance_units=units, **settings, **extra
-                )
+                chosen = {**settings, **allocation.get(model, {}), **extra}
+                config = Settings(str(checkpoint), str(data_dir), tolerance_units=units, **chosen)
                 for kind in kinds:
                     instances = grid(data_dir, kind, **grid_options)
                     store = store_path(folder, kind, config)

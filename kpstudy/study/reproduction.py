@@ -94,6 +94,9 @@ class Profile:
     method, nodes : the allocation method's bounds (``'auto'``: the zonotope) and node
         budget per instance (``None``: the seconds decide): the same verdicts on any
         machine.
+    allocation : per model (``'cnn'``, :data:`FRIENDLY_MODEL`) of T-local and T-global, the
+        allocation method's ``method``, ``nodes`` and ``timeout`` in place of the profile's
+        (:func:`kpstudy.study.campaign.run_study`'s ``allocation``).
     tolerance_units : the readings of the allocated tolerances every campaign and T-prob
         run under (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), the first also with the
         pose-bound method.
@@ -135,6 +138,7 @@ class Profile:
     resnet_images: int | None = None
     method: str = "auto"
     nodes: int | None = None
+    allocation: dict = field(default_factory=dict)
     tolerance_units: tuple = ("heatmap", "paper")
     local_pose_bound: dict = field(default_factory=lambda: dict(LOCAL_POSE_BOUND))
     global_pose_bound: dict = field(default_factory=lambda: dict(GLOBAL_POSE_BOUND))
@@ -175,14 +179,36 @@ class Profile:
                 f"tolerance_units: expected a tuple of distinct readings from "
                 f"{TOLERANCE_UNITS}, got {readings!r}"
             )
+        from kpstudy.study.campaign import ALLOCATION_SETTINGS
         from kpstudy.verify.bounds import METHODS
 
-        if self.method not in ("auto", *METHODS):
-            raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {self.method!r}")
-        if self.nodes is not None and (
-            isinstance(self.nodes, bool) or int(self.nodes) != self.nodes
-        ):
-            raise ValueError(f"nodes: expected None or a positive integer, got {self.nodes!r}")
+        budgets = [("", dict(method=self.method, nodes=self.nodes))]
+        for model, chosen in self.allocation.items():
+            if (
+                model not in ("cnn", FRIENDLY_MODEL)
+                or not isinstance(chosen, dict)
+                or not set(chosen) <= set(ALLOCATION_SETTINGS)
+            ):
+                raise ValueError(
+                    f"allocation: expected {{'cnn' or {FRIENDLY_MODEL!r}: {{setting: value}}}} "
+                    f"with settings from {ALLOCATION_SETTINGS}, got {model!r}: {chosen!r}"
+                )
+            budgets.append(("allocation: ", chosen))
+        for where, chosen in budgets:
+            method, nodes = chosen.get("method", "auto"), chosen.get("nodes")
+            if method not in ("auto", *METHODS):
+                raise ValueError(
+                    f"{where}method: expected 'auto' or one of {METHODS}, got {method!r}"
+                )
+            if nodes is not None and (
+                isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1
+            ):
+                raise ValueError(
+                    f"{where}nodes: expected None or a positive integer, got {nodes!r}"
+                )
+            timeout = chosen.get("timeout", 1.0)
+            if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
+                raise ValueError(f"{where}timeout: expected a positive number, got {timeout!r}")
 
         settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
         for name in ("local_pose_bound", "global_pose_bound"):
@@ -690,6 +716,7 @@ def run_notebooks(
         seeds=prof.seeds,
         timeout=prof.timeout,
         pose_bound=prof.local_pose_bound,
+        allocation=prof.allocation,
         tolerance_units=readings,
         **campaign,
     )
