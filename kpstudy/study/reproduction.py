@@ -21,7 +21,7 @@ Stages, in order; each is skipped when its outputs are current:
 
 The ``quick`` profile runs everything at reduced counts on 2 CPU cores (a smoke test: 3
 seeds a cell); ``standard`` runs the tables at the study's scale on 2 cores (50 seeds a
-table, every method with the zonotope under node budgets, not yet fitted to a run time);
+table, every method under a node budget per instance or hull);
 ``paper`` has the paper's counts (200 seeds, 3000 images × 5000 Monte Carlo samples) and
 is meant for a GPU (training) and a Dask cluster (``--scheduler``, the campaigns).
 """
@@ -267,17 +267,25 @@ GLOBAL_POSE_BOUND = {
 
 #: The standard profile's pose-bound method in T-local: the friendly CNN as in the quick
 #: profile; the natural CNN with the zonotope too (forward bounds decide none of its
-#: object hulls), from the same start depth, within a node budget of the same order as
-#: the allocation method's, so that an `unknown` is the method's at that budget.
+#: object hulls), from the same start depth, on 2 nodes: on 18 standard hulls (3 seeds)
+#: 8 nodes decided the same 34 of 72 cells as the root (violated, at 0 nodes) and cost the
+#: 38 others a median 8.7 s and up to 62 s a hull (docs/findings.md).
 STANDARD_LOCAL_POSE_BOUND = {
     "cnn": dict(
         pose_bound_method="zonotope",
         pose_bound_timeout=600.0,
-        pose_bound_nodes=8,
+        pose_bound_nodes=2,
         pose_bound_start_splits=1.75,
     ),
     FRIENDLY_MODEL: dict(LOCAL_POSE_BOUND[FRIENDLY_MODEL]),
 }
+#: The standard profile's allocation method per model in T-local and T-global: the
+#: profile's zonotope on 2 nodes for the friendly CNN; forward bounds on the natural CNN,
+#: whose zonotope root bound is ~10⁶ below zero under the 'paper' reading (16 nodes: 110 s
+#: an instance, none decided; docs/findings.md). The allocation method bounds each (α, κ)
+#: cell of a hull on its own, about 1.3 s a zonotope node on 2 cores: 16 nodes on the
+#: 2200 'paper' instances would take ~5 hours.
+STANDARD_ALLOCATION = {"cnn": dict(method="forward")}
 
 _QUICK = Profile(
     "quick",
@@ -302,8 +310,10 @@ _QUICK = Profile(
 PROFILES = {
     "quick": _QUICK,
     # The study's scale on 2 cores: the quick profile's dataset and models, 60 test seed
-    # images with perturbation sets (50 per table), every method with the zonotope under
-    # a node budget per instance or hull, T-prob at 1000 views × 5000 samples.
+    # images with perturbation sets (50 per table), every method under a node budget per
+    # instance or hull, T-prob at 1000 views × 5000 samples; two one-thread workers (a
+    # hull on one thread takes 1.1-1.8x its 2-thread time: more hulls an hour, and the
+    # tables' times are one-core times).
     "standard": replace(
         _QUICK,
         name="standard",
@@ -315,9 +325,11 @@ PROFILES = {
         timeout=600.0,
         resnet_timeout=600.0,
         method="auto",
-        nodes=16,
+        nodes=2,
+        allocation=STANDARD_ALLOCATION,
         local_pose_bound=STANDARD_LOCAL_POSE_BOUND,
         overlapping_share=0.5,
+        workers=2,
     ),
     "paper": Profile(
         "paper",
