@@ -455,3 +455,23 @@ def test_the_report_counts_the_searches_a_time_cap_ended_per_method(tmp_path):
         "instances"
     )
     assert "do not depend on the machine's speed" in line
+
+
+def test_the_report_opens_with_each_tables_cost_and_the_paper_profiles(tmp_path):
+    out = tmp_path / "standard"
+    (out / "tables").mkdir(parents=True)
+    records = pd.DataFrame({"image_id": [1, 1, 2, 2, 3], "total_time": [360.0, 0, 720, 1800, 720]})
+    records.to_csv(out / "tables" / "t_global_records.csv", index=False)
+    pd.DataFrame({"image_id": [], "total_time": []}).to_csv(
+        out / "tables" / "t_resnet_records.csv", index=False
+    )
+    cost = report.run_cost(out)
+    assert list(cost.table) == ["t_global"]  # no records of t_local, none in t_resnet
+    row = cost.iloc[0]
+    assert (row.seeds, row.instances) == (3, 5)
+    assert row.hours == pytest.approx(1.0) and row.median_s == 720
+    assert row.paper_hours == pytest.approx(200 / 3)
+    text = report.write_report(out).read_text()
+    assert "| t_global | 3 | 5 | 1.00 | 720 | 66.7 |" in text
+    assert "--profile paper --scheduler" in text
+    assert report.cost_markdown(report.run_cost(tmp_path / "empty")) == []

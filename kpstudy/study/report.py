@@ -25,7 +25,7 @@ import pandas as pd
 from kpstudy.io import write_text_atomic
 from kpstudy.study.comparison import CONDITIONS, GRID_COLUMNS, compact_table, method_cells
 from kpstudy.study.tables import instance_label, reading_comparison
-from kpstudy.study.trends import LEVEL, MIN_SEEDS, trend_table
+from kpstudy.study.trends import LEVEL, MIN_SEEDS, PAPER_SEEDS, trend_table
 
 __all__ = [
     "COMPARED",
@@ -42,6 +42,8 @@ __all__ = [
     "time_cap_reading",
     "trend_markdown",
     "trend_readings",
+    "run_cost",
+    "cost_markdown",
     "write_report",
 ]
 
@@ -129,6 +131,7 @@ def write_report(out, profile: dict | None = None) -> Path:
         lines += ["| setting | value |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in profile.items()]
         lines.append("")
+    lines += cost_markdown(run_cost(out))
     errors = error_instances(out)
     readers = {
         "t_prob": t_prob_readings,
@@ -165,6 +168,70 @@ def write_report(out, profile: dict | None = None) -> Path:
                 else [f"*Figure `{picture}` is missing.*", ""]
             )
     return write_text_atomic(out / "REPORT.md", "\n".join(lines))
+
+
+def run_cost(out) -> pd.DataFrame:
+    """What each verification table of the run at ``out`` cost, from its records
+    (``tables/<name>_records.csv`` with ``image_id`` and ``total_time``), and what the paper's seed count would cost at the
+    same seconds per instance.
+
+    Returns
+    -------
+    DataFrame
+        One row per table of :data:`COMPARED` that has records: ``table``, ``seeds`` (seed
+        images), ``instances`` (records: every model, reading and cell), ``hours``
+        (summed ``total_time``, one worker's hours; the pose-bound method's search of a
+        hull is in its first cell's), ``median_s`` (seconds per instance), ``paper_hours``
+        (``hours × PAPER_SEEDS / seeds``).
+    """
+    rows = []
+    for name in COMPARED:
+        path = Path(out) / "tables" / f"{name}_records.csv"
+        if not path.is_file():
+            continue
+        records = pd.read_csv(path, usecols=lambda c: c in ("image_id", "total_time"))
+        if records.empty or records.shape[1] < 2:
+            continue
+        seeds = records["image_id"].nunique()
+        hours = records["total_time"].sum() / 3600
+        rows.append(
+            dict(
+                table=name,
+                seeds=seeds,
+                instances=len(records),
+                hours=hours,
+                median_s=records["total_time"].median(),
+                paper_hours=hours * PAPER_SEEDS / seeds,
+            )
+        )
+    return pd.DataFrame(
+        rows, columns=["table", "seeds", "instances", "hours", "median_s", "paper_hours"]
+    )
+
+
+def cost_markdown(cost: pd.DataFrame) -> list[str]:
+    """The report's opening lines on :func:`run_cost`: this run's cost per table and the
+    paper profile's at the same seconds per instance (none when no table has records)."""
+    if cost.empty:
+        return []
+    lines = [
+        "**Cost.** Per verification table, this run's seconds summed over its instances "
+        "(one worker's time; `workers` processes share the cores) and the paper profile's "
+        f"at the same seconds per instance on {PAPER_SEEDS} seeds: a lower bound, since "
+        "the paper profile's budgets are seconds (600 s an instance), not nodes. It runs "
+        "on a Dask cluster with `python -m kpstudy reproduce --profile paper --scheduler "
+        "tcp://HOST:8786` (`dask scheduler` on one machine, `dask worker tcp://HOST:8786` "
+        "on each of the others).",
+        "",
+        "| table | seeds | instances | hours | median s / instance | paper profile, hours |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in cost.itertuples(index=False):
+        lines.append(
+            f"| {r.table} | {r.seeds} | {r.instances} | {r.hours:.2f} | {_sec(r.median_s)} | "
+            f"{r.paper_hours:.1f} |"
+        )
+    return [*lines, ""]
 
 
 def _compared(name: str, table: pd.DataFrame, md: Path, figures: Path) -> list[str]:
