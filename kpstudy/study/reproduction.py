@@ -269,7 +269,7 @@ GLOBAL_POSE_BOUND = {
 #: profile; the natural CNN with the zonotope too (forward bounds decide none of its
 #: object hulls), from the same start depth, on 2 nodes: on 18 standard hulls (3 seeds)
 #: 8 nodes decided the same 34 of 72 cells as the root (violated, at 0 nodes) and cost the
-#: 38 others a median 8.7 s and up to 62 s a hull (docs/findings.md).
+#: 38 others a median 8.7 s and up to 62 s a hull.
 STANDARD_LOCAL_POSE_BOUND = {
     "cnn": dict(
         pose_bound_method="zonotope",
@@ -282,7 +282,7 @@ STANDARD_LOCAL_POSE_BOUND = {
 #: The standard profile's allocation method per model in T-local and T-global: the
 #: profile's zonotope on 2 nodes for the friendly CNN; forward bounds on the natural CNN,
 #: whose zonotope root bound is ~10⁶ below zero under the 'paper' reading (16 nodes: 110 s
-#: an instance, none decided; docs/findings.md). The allocation method bounds each (α, κ)
+#: an instance, none decided). The allocation method bounds each (α, κ)
 #: cell of a hull on its own, about 1.3 s a zonotope node on 2 cores: 16 nodes on the
 #: 2200 'paper' instances would take ~5 hours.
 STANDARD_ALLOCATION = {"cnn": dict(method="forward")}
