@@ -23,7 +23,7 @@ import numpy as np
 
 from benchmarks.bound_profile import _checkpoint
 from benchmarks.common import emit, study_hulls
-from kpstudy.certify.pose_bound_method import search_regions
+from kpstudy.certify.pose_bound_regions import search_regions
 from kpstudy.models.data import load_keypoint_set
 from kpstudy.models.preprocess import scale_factors, to_input_pixels, to_model_input
 from kpstudy.models.training import load_checkpoint

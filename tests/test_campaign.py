@@ -1,5 +1,5 @@
-"""kpstudy.certify.allocation_method and kpstudy.study.campaign on a rendered tiny dataset and a
-tiny trained CNN."""
+"""kpstudy.certify.allocation_method, kpstudy.certify.hull and kpstudy.study.campaign on a
+rendered tiny dataset and a tiny trained CNN."""
 
 import shutil
 
@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.certify.allocation_method import SeedImage, build_instance, certify
-from kpstudy.certify.pose_bound_method import argmax_outside
+from kpstudy.certify.allocation_method import SeedImage, build_instance
+from kpstudy.certify.hull import certify
+from kpstudy.certify.pose_bound_attack import argmax_outside
 from kpstudy.models.data import load_keypoint_set
 from kpstudy.models.training import TrainConfig, load_checkpoint, train
 from kpstudy.pose.allocation import allocate_tolerances

@@ -226,7 +226,8 @@ def test_bad_certified_config_is_named():
 
 
 def test_a_tiny_certified_run_loads_evaluates_and_certifies(tiny_dataset, tmp_path):
-    from kpstudy.certify.allocation_method import SeedImage, certify
+    from kpstudy.certify.allocation_method import SeedImage
+    from kpstudy.certify.hull import certify
     from kpstudy.models.data import load_keypoint_set
     from kpstudy.models.evaluation import evaluate
 

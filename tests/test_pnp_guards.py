@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from kpstudy.certify import pose_bound_method
+from kpstudy.certify import pose_bound_rules
 from kpstudy.models.evaluation import pose_errors
 from kpstudy.pose import montecarlo
 from kpstudy.pose.geometry import EPS_R, EPS_T, project_batch
@@ -176,10 +176,10 @@ def test_pose_bound_and_evaluate_give_flagged_poses_an_infinite_error(P, K, monk
 
     R, t, V = views(3, 25, K, P)
     seed = SeedImage(0, V[0], K, P, (640, 400))
-    monkeypatch.setattr(pose_bound_method, "solve_pnp_batch", _flagged(False))
-    assert np.isinf(pose_bound_method._pose_errors(seed, V, R[0], t[0])).all()
-    monkeypatch.setattr(pose_bound_method, "solve_pnp_batch", _flagged(True))
-    assert np.all(pose_bound_method._pose_errors(seed, V[:1], R[0], t[0]) == 0)
+    monkeypatch.setattr(pose_bound_rules, "solve_pnp_batch", _flagged(False))
+    assert np.isinf(pose_bound_rules.pnp_pose_errors(seed, V, R[0], t[0])).all()
+    monkeypatch.setattr(pose_bound_rules, "solve_pnp_batch", _flagged(True))
+    assert np.all(pose_bound_rules.pnp_pose_errors(seed, V[:1], R[0], t[0]) == 0)
 
     def flagged_single(P_, V_, K_, init=None, **kw):
         return PnPResult(R[0], t[0], False, 0.0, 1.0)
@@ -189,12 +189,13 @@ def test_pose_bound_and_evaluate_give_flagged_poses_an_infinite_error(P, K, monk
 
 
 def test_certify_refuses_a_seed_without_a_valid_nominal_pose(P, K, monkeypatch):
-    from kpstudy.certify import allocation_method as certify_module
-    from kpstudy.certify.allocation_method import SeedImage, certify
+    from kpstudy.certify import allocation_method
+    from kpstudy.certify.allocation_method import SeedImage
+    from kpstudy.certify.hull import certify
 
     R, t, V = views(1, 26, K, P)
     monkeypatch.setattr(
-        certify_module, "solve_pnp", lambda *a, **kw: PnPResult(R[0], t[0], False, 90.0, -3.0)
+        allocation_method, "solve_pnp", lambda *a, **kw: PnPResult(R[0], t[0], False, 90.0, -3.0)
     )
     backbone = torch.nn.Identity()
     backbone.input_size, backbone.heatmap_size = 64, 64

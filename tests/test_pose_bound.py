@@ -1,5 +1,5 @@
-"""kpstudy.certify.pose_bound_method: the linearised pose bound over keypoint regions, and
-certify's record."""
+"""kpstudy.certify.pose_bound_method and its parts: the linearised pose bound over keypoint
+regions (kpstudy.certify.pose_bound_rules), the region search, and certify's record."""
 
 import itertools
 
@@ -9,8 +9,10 @@ import torch
 
 from data_gen.perturb import hull_vertices
 from kpstudy.certify import pose_bound_method as pb
-from kpstudy.certify.allocation_method import certify, target_pose_errors
-from kpstudy.certify.pose_bound_method import linearised_bound
+from kpstudy.certify.allocation_method import target_pose_errors
+from kpstudy.certify.hull import certify
+from kpstudy.certify.pose_bound_regions import region_pooling, search_regions
+from kpstudy.certify.pose_bound_rules import linearised_bound
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.preprocess import to_model_input
 from kpstudy.models.training import load_checkpoint
@@ -176,7 +178,7 @@ def _block_hull_pose_bound(trained, **search):
 
 def test_a_refined_search_only_removes_pixels_no_image_reaches(study):  # noqa: F811
     backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=1, refine_nodes=6)
-    first, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
+    first, _ = search_regions(backbone, hull, pose.centers, 1, pose.search)
     # Every unreached cell in focus: the second search may split wherever the first left one.
     focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
     merged, pixels = pose._refined(first, focus, 6)
@@ -195,7 +197,7 @@ def test_the_search_takes_its_witnesses_from_the_first_images_without_evaluating
     study,  # noqa: F811
 ):
     backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=2)
-    alone, _ = pb.search_regions(backbone, hull, pose.centers, 1, pose.search)
+    alone, _ = search_regions(backbone, hull, pose.centers, 1, pose.search)
     evaluated = []
     hook = backbone.register_forward_hook(lambda m, args, out: evaluated.append(len(args[0])))
     record = pose.decide(np.full(6, 1e6))  # Ξ holds every pose: no early witness
@@ -218,7 +220,7 @@ def test_at_stride_1_the_proxy_is_the_backbones_own_output():
     torch.manual_seed(0)
     net = HeatmapCNNPatchDecoder(5).eval()
     centers = np.array([[0, 0], [63, 0], [0, 63], [63, 63], [20, 41]])
-    proxy = build_proxy(net, pb._pooling(centers, 1, 64), centers).eval()
+    proxy = build_proxy(net, region_pooling(centers, 1, 64), centers).eval()
     assert proxy.spec.group_sizes == [64 * 64] * 5
     x = torch.randn(2, 3, 64, 64)
     with torch.no_grad():

@@ -1,6 +1,10 @@
 """kpstudy.certify.pose_bound_method's exact decision (issue 27, part 2): PnP over every
 combination of region pixels decides where there are few enough, the linearised bound only
-above that, and the tables count which rule decided."""
+above that, and the tables count which rule decided. The method's seams (the region search,
+the enumeration, the attack, its limits) are patched where it looks them up, in
+:mod:`kpstudy.certify.pose_bound_method`; the parts' own code in
+:mod:`~kpstudy.certify.pose_bound_regions`, :mod:`~kpstudy.certify.pose_bound_rules` and
+:mod:`~kpstudy.certify.pose_bound_attack`."""
 
 import io
 import itertools
@@ -12,8 +16,13 @@ import pytest
 import torch
 from torch import nn
 
+from kpstudy.certify import pose_bound_attack as attack
 from kpstudy.certify import pose_bound_method as pb
+from kpstudy.certify import pose_bound_regions as pb_regions
+from kpstudy.certify import pose_bound_rules as rules
 from kpstudy.certify.allocation_method import SeedImage
+from kpstudy.models.heads import argmax_keypoints
+from kpstudy.models.pooling import num_cells
 from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
 from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
@@ -75,15 +84,17 @@ def test_the_targeted_witness_reaches_joint_combinations_and_only_those():
     model = _Ramp(peaks, moved, [1 / 3, 1.0, 3.0])
     hull = _hull()
     seed = [torch.zeros(1, dtype=torch.float64)]
-    lam = pb.targeted_witness(model, hull, moved, seed)
+    lam = attack.targeted_witness(model, hull, moved, seed)
     assert lam is not None and lam.item() > 0.75
     heat = model(hull.image(lam[None], dtype=torch.float32))
-    assert np.array_equal(pb.argmax_keypoints(heat)[0].numpy(), moved)
+    assert np.array_equal(argmax_keypoints(heat)[0].numpy(), moved)
     # Keypoint 0 at its peak (b < 0.75) with keypoint 1 moved (b > 0.5): reachable.
     both = np.stack([peaks[0], moved[1], moved[2]])
-    assert 0.5 < pb.targeted_witness(model, hull, both, seed).item() < 0.75
+    assert 0.5 < attack.targeted_witness(model, hull, both, seed).item() < 0.75
     # Keypoint 1 at its peak (b < 0.5) with keypoint 0 moved (b > 0.75): no image does it.
-    assert pb.targeted_witness(model, hull, np.stack([moved[0], peaks[1], moved[2]]), seed) is None
+    assert (
+        attack.targeted_witness(model, hull, np.stack([moved[0], peaks[1], moved[2]]), seed) is None
+    )
 
 
 def test_a_free_keypoint_and_alternative_targets():
@@ -94,15 +105,15 @@ def test_a_free_keypoint_and_alternative_targets():
     # Keypoint 0 moved with keypoint 1 at its peak is no image's argmax; keypoint 0 moved
     # with keypoint 1 free is (b > 0.75).
     unreachable = np.stack([moved[0], peaks[1], moved[2]])
-    assert pb.targeted_witness(model, hull, unreachable, seed) is None
+    assert attack.targeted_witness(model, hull, unreachable, seed) is None
     free = unreachable.copy()
     free[1:] = -1
-    assert pb.targeted_witness(model, hull, free, seed).item() > 0.75
+    assert attack.targeted_witness(model, hull, free, seed).item() > 0.75
     # Several targets at once: the first reached is returned.
-    lam = pb.targeted_witness(model, hull, np.stack([unreachable, free]), seed)
+    lam = attack.targeted_witness(model, hull, np.stack([unreachable, free]), seed)
     assert lam is not None and lam.item() > 0.75
     with pytest.raises(ValueError, match="targets: expected shape"):
-        pb.targeted_witness(model, hull, np.zeros(2, dtype=np.int64), seed)
+        attack.targeted_witness(model, hull, np.zeros(2, dtype=np.int64), seed)
 
 
 @pytest.fixture(scope="module")
@@ -196,9 +207,11 @@ def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypat
     pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1))])
     _with_regions(monkeypatch, pixels)
     searches, enumerations = [], []
-    search, enumerate_ = pb.search_regions, pb._enumerate
+    search, enumerate_ = pb.search_regions, pb.enumerate_combinations
     monkeypatch.setattr(pb, "search_regions", lambda *a, **k: searches.append(1) or search(*a, **k))
-    monkeypatch.setattr(pb, "_enumerate", lambda *a: enumerations.append(1) or enumerate_(*a))
+    monkeypatch.setattr(
+        pb, "enumerate_combinations", lambda *a: enumerations.append(1) or enumerate_(*a)
+    )
     exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
     M = np.full((6, 46), 1.0)
     cells = [(1.5 * exact + 1e-6, 1.0), (1.5 * exact + 1e-6, 2.0), (1.2 * exact + 1e-6, 1.0)]
@@ -219,8 +232,8 @@ def _far_tolerance(scene):
     near = [to_image_pixels(c[None], factors) for c in centers]
     far = list(near)
     far[0] = to_image_pixels(centers[0][None] + [8, 0], factors)
-    e_near = pb.enumerated_pose_error(seed, near, R, t)
-    e_far = pb.enumerated_pose_error(seed, far, R, t)
+    e_near = rules.enumerated_pose_error(seed, near, R, t)
+    e_far = rules.enumerated_pose_error(seed, far, R, t)
     axis = int(np.argmax(e_far / e_near))
     assert e_far[axis] > 2 * e_near[axis]
     eps = 2 * np.maximum(e_near, e_far)
@@ -267,13 +280,15 @@ def test_single_moves_are_the_possible_pixels_that_alone_leave_the_tolerance(sce
     seed, R, t, factors, centers = scene
     eps, _ = _far_tolerance(scene)
     pixels = _regions_with(centers, [(0, (8, 0)), (0, (1, 0)), (3, (0, 1))])
-    moves = pb.single_moves(
+    moves = rules.single_moves(
         seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, eps
     )
     assert [(k, tuple(p)) for k, p in moves] == [(0, tuple(centers[0] + [8, 0]))]
     wide = np.full(6, 1e6)
     assert (
-        pb.single_moves(seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide)
+        rules.single_moves(
+            seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide
+        )
         == []
     )
 
@@ -315,7 +330,7 @@ def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
 
     _, _, _, _, centers = scene
     _with_regions(monkeypatch, _regions_with(centers, [(0, (1, 0))]))
-    monkeypatch.setattr(pb, "solve_pnp_batch", flag_the_moved_one)
+    monkeypatch.setattr(rules, "solve_pnp_batch", flag_the_moved_one)
     record = _decide(scene, np.zeros((6, 46)), np.full(6, 1e3))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
     assert record["pb_exact"] == [np.inf] * 6
@@ -358,13 +373,13 @@ def test_enumeration_equals_a_brute_force_loop(scene, monkeypatch, chunk):
         np.testing.assert_array_equal(init[1], np.broadcast_to(t, (len(V), 3)))
         return real(P, V, K, init, **kw)
 
-    monkeypatch.setattr(pb, "solve_pnp_batch", counted)
-    exact = pb.enumerated_pose_error(seed, positions, R, t, chunk=chunk)
+    monkeypatch.setattr(rules, "solve_pnp_batch", counted)
+    exact = rules.enumerated_pose_error(seed, positions, R, t, chunk=chunk)
     total = int(np.prod([len(p) for p in positions]))
     assert sum(sizes) == total and max(sizes) <= chunk
     np.testing.assert_allclose(exact, brute, rtol=1e-5, atol=1e-7)
     # Through pose_bound, in chunks of the module's size.
-    monkeypatch.setattr(pb, "ENUMERATION_CHUNK", chunk)
+    monkeypatch.setattr(rules, "ENUMERATION_CHUNK", chunk)
     _with_regions(monkeypatch, [np.unique(np.array(p), axis=0) for p in pixels])
     record = _decide(scene, np.zeros((6, 46)), 2 * brute + 1e-6)
     assert record["pb_combinations"] == total and record["pb_rule"] == "enumeration"
@@ -374,9 +389,9 @@ def test_enumeration_equals_a_brute_force_loop(scene, monkeypatch, chunk):
 def test_bad_chunks_and_keypoints_are_named(scene):
     seed, R, t, _, _ = scene
     with pytest.raises(ValueError, match="^chunk"):
-        pb.enumerated_pose_error(seed, [np.zeros((1, 2))] * 23, R, t, chunk=0)
+        rules.enumerated_pose_error(seed, [np.zeros((1, 2))] * 23, R, t, chunk=0)
     with pytest.raises(ValueError, match=r"^keypoints\[1\]"):
-        pb.enumerated_pose_error(seed, [np.zeros((1, 2)), np.zeros((0, 2))], R, t)
+        rules.enumerated_pose_error(seed, [np.zeros((1, 2)), np.zeros((0, 2))], R, t)
 
 
 def _records():
@@ -485,8 +500,8 @@ def _stride1_cells(scene):
     """The scene's rounded centres (int), their stride-1 pooling, the cell index of
     keypoint k's heatmap pixel ``(u, v)``, and the pixel 8 right of keypoint 0's."""
     centers = scene[-1].astype(np.int64)
-    pooling = pb._pooling(centers, 1, HM)
-    n_h = [pb.num_cells(horizontal, HM) for horizontal, _ in pooling]
+    pooling = pb_regions.region_pooling(centers, 1, HM)
+    n_h = [num_cells(horizontal, HM) for horizontal, _ in pooling]
 
     def cell(k, u, v):
         return int(v * n_h[k] + u)  # stride 1: one pixel a cell
@@ -504,19 +519,19 @@ def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tole
     seed_lam = torch.zeros(1, dtype=torch.float64)
     witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
     regions = types.SimpleNamespace(possible=possible, witnesses=witnesses)
-    pixels = pb.region_pixels(regions, pooling, HM)
+    pixels = pb_regions.region_pixels(regions, pooling, HM)
     assert pixels[0].tolist() == [centers[0].tolist(), far.tolist()]
     # Only the combination with keypoint 0 at ``far`` leaves Ξ; every pixel in it is involved.
     positions = [to_image_pixels(p, factors) for p in pixels]
-    _, farthest, involved = pb._enumerate(seed, positions, R, t, eps)
+    _, farthest, involved = rules.enumerate_combinations(seed, positions, R, t, eps)
     assert involved[0].tolist() == [False, True] and all(m.all() for m in involved[1:])
     assert farthest.tolist() == [1] + [0] * (len(centers) - 1)
     # Of those, only ``far`` has no witness: the one cell a split may remove.
-    focus = pb._focus(regions, pooling, HM, involved)
+    focus = pb_regions.focus_cells(regions, pooling, HM, involved)
     assert focus[0].tolist() == [cell(0, *far)] and not any(len(f) for f in focus[1:])
     # A cell some image is known to reach is a fact, not a split's target.
     regions.witnesses[0][cell(0, *far)] = torch.ones(1, dtype=torch.float64)
-    assert not any(len(f) for f in pb._focus(regions, pooling, HM, involved))
+    assert not any(len(f) for f in pb_regions.focus_cells(regions, pooling, HM, involved))
 
 
 def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(scene, monkeypatch):
@@ -533,7 +548,7 @@ def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(s
     seed_lam = torch.zeros(1, dtype=torch.float64)
     witnesses = [{cell(k, *c): seed_lam} for k, c in enumerate(centers)]
     regions = types.SimpleNamespace(possible=possible, witnesses=witnesses)
-    pixels = pb.region_pixels(regions, pooling, HM)
+    pixels = pb_regions.region_pixels(regions, pooling, HM)
     verdict = {"rule": "linearised", "involved": None}
     focus = pose._refine_focus(eps, verdict, regions, pixels, budget=1)
     assert focus[0].tolist() == [cell(0, *far)] and not any(len(f) for f in focus[1:])
@@ -563,7 +578,7 @@ def _far_pixel_search(scene, foci, nodes=(1, 1), stopped=(None, None)):
         found = Regions(
             [HM * HM] * len(centers), possible, witnesses, 0.0, nodes[0 if first else 1], stats
         )
-        return found, pb.region_pixels(found, pooling, HM)
+        return found, pb_regions.region_pixels(found, pooling, HM)
 
     return search
 

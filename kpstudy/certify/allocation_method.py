@@ -1,7 +1,8 @@
-"""One seed image → one verification instance → one record (paper §5–6, docs/design.md §1).
+"""The allocation method on one instance: seed image → verification instance → record
+(paper §5–6, docs/design.md §1).
 
-:func:`certify` runs the method end to end for a trained backbone, the seed image's
-ground truth and the vertices of a convex hull of perturbed images:
+For a trained backbone, the seed image's ground truth and the vertices of a convex hull
+of perturbed images, at one cell ``(α, κ)``:
 
 1. nominal pose: OpenCV PnP on the ground-truth keypoints;
 2. sensitivity ``dξ/dv`` at that pose, in heatmap pixels;
@@ -13,13 +14,12 @@ ground truth and the vertices of a convex hull of perturbed images:
    (``κ |M| δv ≤ α ε``, per image pixel) around the rounded keypoints;
 4. pooling on those cells → the proxy network and its spec ("each keypoint's own cell
    wins");
-5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices;
-6. optionally, on the same hull, the pose-bound method
-   (:mod:`kpstudy.certify.pose_bound_method`): where each keypoint's argmax can go, and the
-   pose-error bound that follows.
+5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices.
 
 Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
-verifying them (:mod:`kpstudy.study.vnncomp` writes them for other verifiers).
+verifying them (:mod:`kpstudy.study.vnncomp` writes them for other verifiers); step 5 and
+the record are :func:`verify_instance`. :mod:`kpstudy.certify.hull` runs both on each
+cell of a hull, with the pose-bound method beside them (:func:`kpstudy.certify.certify`).
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
@@ -30,7 +30,6 @@ whether the paper's assumptions (argmax ≈ DSNT, first-order PnP) hold on the i
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +38,7 @@ from torch import nn
 
 from kpstudy import _checks
 from kpstudy._memo import digest, remember
-from kpstudy.certify.pose_bound_method import HullPoseBound, argmax_outside
+from kpstudy.certify.pose_bound_attack import argmax_outside
 from kpstudy.models.evaluation import pose_errors
 from kpstudy.models.heads import dsnt_keypoints
 from kpstudy.models.pooling import keypoint_cells
@@ -68,9 +67,8 @@ __all__ = [
     "SeedImage",
     "VerificationInstance",
     "build_instance",
-    "certify",
-    "certify_cells",
     "target_pose_errors",
+    "verify_instance",
 ]
 
 
@@ -195,7 +193,7 @@ def build_instance(
     w2: float = 5.0,
     tolerance_units: str = "heatmap",
 ) -> VerificationInstance:
-    """The proxy, hull and spec that :func:`certify` verifies (no verification).
+    """The proxy, hull and spec that :func:`verify_instance` verifies (no verification).
 
     Parameters
     ----------
@@ -249,7 +247,7 @@ def build_instance(
         )
     R, t = nominal
     factors = scale_factors(seed.image_size, hm)
-    M = _sensitivity(P, V, K, R, t, factors)
+    M = cached_sensitivity(P, V, K, R, t, factors)
     exact = to_input_pixels(V, factors)
     centers = np.rint(exact).astype(np.int64)
     if np.any((centers < 0) | (centers >= hm)):
@@ -263,7 +261,7 @@ def build_instance(
         allocation = _cells(M, offsets, eps_r, eps_t, kappa, w1, w2, centers, hm - 1 - centers)
         below, above, feasible = allocation.below, allocation.above, allocation.feasible
     else:
-        M_image = _sensitivity(P, V, K, R, t, None)
+        M_image = cached_sensitivity(P, V, K, R, t, None)
         allocation = _allocation(M_image, eps_r, eps_t, kappa, w1, w2, hm)
         below = above = allocation.dv
         feasible = True
@@ -295,7 +293,7 @@ _SENSITIVITIES: dict = {}
 _ALLOCATIONS: dict = {}
 
 
-def _sensitivity(P, V, K, R, t, scale) -> np.ndarray:
+def cached_sensitivity(P, V, K, R, t, scale) -> np.ndarray:
     """:func:`kpstudy.pose.sensitivity.pose_sensitivity` (its first call in a process takes
     about 2 s), kept by the content of its inputs: a campaign's instances of one seed
     image share it."""
@@ -321,154 +319,25 @@ def _allocation(M, eps_r, eps_t, kappa, w1, w2, max_dv) -> Allocation:
     return remember(_ALLOCATIONS, key, make, 64)
 
 
-def certify(backbone: nn.Module, vertices, seed: SeedImage, *, alpha=1.0, kappa=1.0, **options):
-    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell:
-    one instance, :func:`certify_cells` with the one cell ``(alpha, kappa)`` and its
-    other keywords ``options``; its record."""
-    return certify_cells(backbone, vertices, seed, [(alpha, kappa)], **options)[0]
-
-
-def certify_cells(
+def verify_instance(
     backbone: nn.Module,
-    vertices,
+    instance: VerificationInstance,
     seed: SeedImage,
-    cells,
     *,
-    w1: float = 1.0,
-    w2: float = 5.0,
     method: str = "auto",
     timeout: float = 60.0,
     max_nodes: int | None = None,
     check_samples: int = 200,
     sample_seed: int = 0,
-    pose_bound_timeout: float | None = None,
-    pose_bound_stride: int = 1,
-    pose_bound_method: str = "forward",
-    pose_bound_nodes: int | None = None,
-    pose_bound_start_depth: int = 0,
-    pose_bound_start_splits: float = 0.0,
-    pose_bound_refine_nodes: int = 0,
-    tolerance_units: str = "heatmap",
 ) -> dict:
-    """Verify that every image of the hull of ``vertices`` keeps each keypoint in its cell,
-    for each cell ``(α, κ)`` of the study's grid on this hull.
+    """The allocation method's record of one instance: :func:`kpstudy.verify.verify` on
+    ``instance`` (:func:`build_instance`'s, for ``backbone`` and ``seed``) and the target
+    model's pose errors.
 
-    The cells share the hull, so what depends on the hull alone is made once: the
-    pose-bound method's region search, enumeration and attacks (a
-    :class:`kpstudy.certify.pose_bound_method.HullPoseBound`).
-
-    Parameters
-    ----------
-    backbone, vertices, seed, w1, w2, tolerance_units :
-        The instances, as :func:`build_instance` takes them.
-    cells : sequence of (float, float)
-        ``(alpha, kappa)`` of each instance (:func:`build_instance`'s).
-    method, timeout, max_nodes :
-        Passed to :func:`kpstudy.verify.verify` (seconds; a node budget, ``None``: the
-        seconds alone).
-    check_samples : int
-        For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
-    sample_seed : int
-    pose_bound_timeout : float, optional
-        Seconds for the second method, :class:`kpstudy.certify.HullPoseBound` (reachable
-        keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
-    pose_bound_stride : int
-        Its cell side in heatmap pixels (1: the argmax pixel itself).
-    pose_bound_method : str
-        Its bound method (``'forward'`` or ``'zonotope'``).
-    pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
-        Its node budget (``None``: the seconds alone) and the hull's splits before the
-        first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
-        ``start_depth``, ``start_splits``).
-    pose_bound_refine_nodes : int
-        Its focused second searches for an ``unknown`` verdict
-        (:class:`~kpstudy.certify.pose_bound_method.HullPoseBound`'s ``refine_nodes``).
-
-    Returns
-    -------
-    list of dict
-        One record per cell, in order: ``image_id``, ``n`` (perturbed vertices),
-        ``status`` (``holds`` / ``violated`` / ``unknown``, or ``not_certifiable``: under
-        ``'heatmap'`` the pixel grid alone exceeds the tolerance to first order, so nothing
-        is verified), ``time`` (verification, s), ``total_time`` (s), ``nodes``, ``stopped``
-        (what ended the search early: ``'nodes'`` (``max_nodes`` spent), ``'time'``
-        (``timeout`` fired: the verdict depends on the machine), ``'stop'`` (a
-        counterexample) or None),
-        ``group_status`` (per keypoint), ``margin_bracket`` (the worst keypoint's margin
-        over the hull: [root lower bound, smallest found by the attacks], see
-        :meth:`kpstudy.verify.Result.margin_bracket`), ``cells`` (``[lo, hi]``, each K ×
-        [u, v], heatmap px), ``dv`` (K × [δu, δv], the cells' half-widths, heatmap px),
-        ``delta``, ``objective``, ``first_order`` (the cells' largest first-order pose error
-        from the exact keypoints, a multiple of ``ε / κ``), ``seed_error`` (6 pose errors
-        of the target model on the seed, degrees and metres), ``seed_inside`` (that error
-        lies in Ξ),
-        ``counterexample`` (λ or None), ``empirical_inside`` (fraction of sampled hull
-        images whose target pose error lies in Ξ; None unless ``holds``),
-        ``argmax_outside`` (fraction of the same images whose argmax → PnP pose leaves
-        Ξ: what a ``holds`` under the ``'paper'`` reading lets through; None unless
-        ``holds``), ``empirical_samples``, ``tolerance_units``; with
-        ``pose_bound_timeout``, the ``pb_*`` entries of
-        :meth:`kpstudy.certify.pose_bound_method.HullPoseBound.decide`.
+    The keywords are :func:`kpstudy.certify.certify_cells`'s; the record is its record
+    without ``tolerance_units``, the ``pb_*`` entries and ``total_time``. An instance
+    that is not ``feasible`` is ``not_certifiable`` and is not verified.
     """
-    if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
-        raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
-    cells = list(cells)
-    if not cells or any(np.shape(c) != (2,) for c in cells):
-        raise ValueError(f"cells: expected one or more (alpha, kappa) pairs, got {cells!r}")
-    cells = [
-        (float(_checks.positive(a, "alpha")), float(_checks.positive(k, "kappa"))) for a, k in cells
-    ]
-    shared = None  # the pose-bound method on this hull, made with the first cell
-    records = []
-    for alpha, kappa in cells:
-        start = time.perf_counter()
-        instance = build_instance(
-            backbone,
-            vertices,
-            seed,
-            alpha=alpha,
-            kappa=kappa,
-            w1=w1,
-            w2=w2,
-            tolerance_units=tolerance_units,
-        )
-        record = _verify_instance(
-            backbone, instance, seed, method, timeout, max_nodes, check_samples, sample_seed
-        )
-        record["tolerance_units"] = tolerance_units
-        if pose_bound_timeout is not None:
-            if shared is None:
-                P, V = seed.points_3d, np.asarray(seed.keypoints, float)
-                M_image = _sensitivity(
-                    P, V, np.asarray(seed.K, float), instance.R, instance.t, None
-                )
-                shared = HullPoseBound(
-                    backbone,
-                    instance.hull,
-                    seed,
-                    instance.R,
-                    instance.t,
-                    M_image,
-                    stride=pose_bound_stride,
-                    timeout=pose_bound_timeout,
-                    method=pose_bound_method,
-                    max_nodes=pose_bound_nodes,
-                    start_depth=pose_bound_start_depth,
-                    start_splits=pose_bound_start_splits,
-                    refine_nodes=pose_bound_refine_nodes,
-                    sample_seed=sample_seed,
-                )
-            record.update(shared.decide(instance.xi, kappa))
-        record["total_time"] = time.perf_counter() - start
-        records.append(record)
-    return records
-
-
-def _verify_instance(
-    backbone, instance, seed, method, timeout, max_nodes, check_samples, sample_seed
-) -> dict:
-    """The allocation method's record of one instance (:func:`certify_cells`'s, without
-    ``tolerance_units``, the ``pb_*`` entries and ``total_time``)."""
     hull, allocation, xi, R, t = (
         instance.hull,
         instance.allocation,
@@ -525,3 +394,14 @@ def _verify_instance(
         record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)
     return record
+
+
+def __getattr__(name: str):
+    """``certify``, which moved to :mod:`kpstudy.certify.hull` (issue 61): only for
+    tests/test_export_benchmark.py, which still imports it from here; once it takes
+    ``from kpstudy.certify import certify``, this goes."""
+    if name == "certify":
+        from kpstudy.certify.hull import certify
+
+        return certify
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,7 +2,12 @@
 
 The paper allocates keypoint tolerances *before* verification and asks the verifier to
 keep each keypoint in its cell; this module asks the verifier *where* each keypoint can
-go and decides the pose error from that (docs/design.md §4.11):
+go and decides the pose error from that (docs/design.md §4.11). Its parts:
+:mod:`~kpstudy.certify.pose_bound_regions` (where each keypoint's argmax can go),
+:mod:`~kpstudy.certify.pose_bound_rules` (PnP and the linearised bound over those
+regions) and :mod:`~kpstudy.certify.pose_bound_attack` (images whose argmax → PnP pose
+leaves Ξ); :class:`HullPoseBound` composes them on one hull, for any number of
+tolerance boxes Ξ (half-widths ``eps``, 6: degrees then metres). The steps:
 
 1. :func:`kpstudy.verify.reachable_argmax` on the backbone's heatmaps (``stride`` 1: the
    argmax head's own pixels; an odd ``stride`` > 1 pools ``stride × stride`` cells around
@@ -13,13 +18,15 @@ go and decides the pose error from that (docs/design.md §4.11):
 3. the *linearised* pose error ``δξ = M δ`` (``M = dξ/dv`` in image pixels) is bounded per
    axis by ``max |Σ_k M_k δ_k|`` over the product of the keypoints' pixel sets, which is
    exact for that product *of the linearisation* and separable per keypoint
-   (:func:`linearised_bound`); it is never above the triangle-inequality bound
-   ``Σ_j |M_ij| max |δ_j|``, but it is not a bound on PnP's error;
+   (:func:`~kpstudy.certify.pose_bound_rules.linearised_bound`); it is never above the
+   triangle-inequality bound ``Σ_j |M_ij| max |δ_j|``, but it is not a bound on PnP's
+   error;
 4. where the product of the region sizes is at most :data:`MAX_COMBINATIONS`, PnP is
-   solved on *every* combination of region pixels (:func:`enumerated_pose_error`, in
-   chunks of :data:`ENUMERATION_CHUNK` problems): its per-axis maximum is exact for the
-   argmax → PnP pipeline over the product of the regions, hence an upper bound over the
-   hull;
+   solved on *every* combination of region pixels
+   (:func:`~kpstudy.certify.pose_bound_rules.enumerated_pose_error`, in chunks of
+   :data:`~kpstudy.certify.pose_bound_rules.ENUMERATION_CHUNK` problems): its per-axis
+   maximum is exact for the argmax → PnP pipeline over the product of the regions, hence
+   an upper bound over the hull;
 5. PnP is re-solved at the extreme and at random combinations of region pixels (the
    nonlinear check, ``pb_nonlinear``: how far the linearisation is off; not for a
    ``violated`` verdict);
@@ -44,17 +51,18 @@ Verdict, the first rule that applies deciding (``pb_rule``):
 * ``'linearised'`` (more combinations): ``holds`` when ``κ · bound ≤ ε`` on every axis,
   else ``unknown``. Such a ``holds`` covers the argmax head and the *linearised* PnP only.
 
-Before an enumerated ``unknown``, :func:`targeted_witness` looks for an image whose
+Before an enumerated ``unknown``,
+:func:`~kpstudy.certify.pose_bound_attack.targeted_witness` looks for an image whose
 argmax is the combination farthest outside Ξ or one of the :data:`TARGETED_MOVES`
-possible one-keypoint moves that alone leave Ξ (:func:`single_moves`); found, and its
-pose re-checked like every witness's, the instance is ``violated`` by ``'witness'``.
+possible one-keypoint moves that alone leave Ξ
+(:func:`~kpstudy.certify.pose_bound_rules.single_moves`); found, and its pose re-checked
+in float64 like every witness's, the instance is ``violated`` by ``'witness'``.
 An ``unknown`` may then get a second, focused search (:class:`HullPoseBound`'s
 ``refine_nodes``) and the rules run again on its smaller regions.
 """
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 import time
@@ -63,28 +71,30 @@ import numpy as np
 import torch
 
 from kpstudy._memo import digest
+from kpstudy.certify.pose_bound_attack import HullArgmaxPoses, targeted_witness
+from kpstudy.certify.pose_bound_regions import (
+    focus_cells,
+    pixel_grid,
+    region_pooling,
+    search_regions,
+    unsearched_regions,
+)
+from kpstudy.certify.pose_bound_rules import (
+    enumerate_combinations,
+    linearised_bound,
+    pnp_pose_errors,
+    single_moves,
+)
 from kpstudy.models.heads import argmax_keypoints
-from kpstudy.models.pooling import cell_bounds, keypoint_pooling, num_cells
 from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
-from kpstudy.models.proxy import build_proxy
-from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
-from kpstudy.pose.pnp import solve_pnp_batch
-from kpstudy.verify import Regions, reachable_argmax
+from kpstudy.pose.geometry import inside_tolerance
 from kpstudy.verify.reachable import MAX_START_DEPTH, check_search
 
 __all__ = [
-    "ENUMERATION_CHUNK",
     "FOCUS_PER_NODE",
     "HullPoseBound",
     "MAX_COMBINATIONS",
-    "argmax_outside",
-    "enumerated_pose_error",
-    "linearised_bound",
     "pose_bound",
-    "region_pixels",
-    "search_regions",
-    "single_moves",
-    "targeted_witness",
 ]
 
 #: Starting points of :func:`targeted_witness` (the seed and the search's first witnesses).
@@ -101,131 +111,6 @@ FOCUS_PER_NODE = 8
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
 #: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
 MAX_COMBINATIONS = 10**6
-
-#: PnP problems solved together by :func:`enumerated_pose_error` (bounds its memory: about
-#: 1 KB per problem per keypoint in the solver).
-ENUMERATION_CHUNK = 10**5
-
-
-def region_pixels(regions, pooling, heatmap_size: int) -> list[np.ndarray]:
-    """Heatmap pixels ``(n_k, 2)`` as ``(u, v)`` of each keypoint's possible cells.
-
-    ``pooling`` is the (horizontal, vertical) :class:`kpstudy.models.pooling.PoolParams` pair of
-    each keypoint that the regions' proxy used; a cell contributes all its real pixels.
-    """
-    out = []
-    for k, pair in enumerate(pooling):
-        mask = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
-        for u0, u1, v0, v1 in _cell_boxes(regions.possible[k], pair, heatmap_size):
-            mask[u0 : u1 + 1, v0 : v1 + 1] = True
-        out.append(np.argwhere(mask).astype(np.float64).reshape(-1, 2))  # sorted by (u, v)
-    return out
-
-
-def _cell_boxes(cells, pair, heatmap_size: int) -> np.ndarray:
-    """First and last real pixel ``(u0, u1, v0, v1)`` of each of ``cells`` (indices of the
-    grid of the (horizontal, vertical) :class:`kpstudy.models.pooling.PoolParams` ``pair``),
-    ``(len(cells), 4)``."""
-    horizontal, vertical = pair
-    n_h, n_v = num_cells(horizontal, heatmap_size), num_cells(vertical, heatmap_size)
-    u_bounds = np.array([cell_bounds(i, horizontal, heatmap_size) for i in range(n_h)])
-    v_bounds = np.array([cell_bounds(i, vertical, heatmap_size) for i in range(n_v)])
-    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
-    return np.concatenate([u_bounds[cells % n_h], v_bounds[cells // n_h]], axis=1)
-
-
-def linearised_bound(M, deviations) -> tuple[np.ndarray, np.ndarray]:
-    """Largest ``|M δ|`` per pose axis over the product of the keypoints' deviation sets.
-
-    Parameters
-    ----------
-    M : array_like, shape (6, 2K)
-        ``dξ/dv`` (degrees and metres per image pixel), columns ``u1, v1, u2, …``.
-    deviations : sequence of K arrays, shape (n_k, 2)
-        Possible deviations ``(δu, δv)`` of keypoint k from its ground truth, image pixels;
-        ``n_k ≥ 1``.
-
-    Returns
-    -------
-    bound : ndarray, shape (6,)
-        ``max(Σ_k max_p M_k δ_p, −Σ_k min_p M_k δ_p)``: the exact maximum of ``|M δ|`` over
-        the product (the sum separates per keypoint), degrees then metres.
-    extremes : ndarray, shape (12, K)
-        Per axis and sign (``+roll, −roll, +pitch, …``), the index into each keypoint's set
-        that attains it: the corners for the nonlinear check.
-    """
-    M = np.asarray(M, dtype=np.float64)
-    K = len(deviations)
-    if M.shape != (6, 2 * K):
-        raise ValueError(f"M: expected shape (6, {2 * K}) for {K} keypoints, got {M.shape}")
-    hi, lo = np.zeros(6), np.zeros(6)
-    extremes = np.zeros((12, K), dtype=np.int64)
-    for k, d in enumerate(deviations):
-        d = np.asarray(d, dtype=np.float64)
-        if d.ndim != 2 or d.shape[1] != 2 or len(d) == 0:
-            raise ValueError(f"deviations[{k}]: expected shape (n >= 1, 2), got {d.shape}")
-        values = M[:, 2 * k : 2 * k + 2] @ d.T  # (6, n_k)
-        hi += values.max(1)
-        lo += values.min(1)
-        extremes[0::2, k] = values.argmax(1)
-        extremes[1::2, k] = values.argmin(1)
-    return np.maximum(hi, -lo), extremes
-
-
-def enumerated_pose_error(seed, keypoints, R, t, *, chunk: int | None = None) -> np.ndarray:
-    """Largest PnP pose error per axis over every combination of keypoint positions.
-
-    Parameters
-    ----------
-    seed : kpstudy.certify.allocation_method.SeedImage
-        Its ``points_3d (K, 3)`` (metres) and intrinsics ``K (3, 3)``.
-    keypoints : sequence of K arrays, shape (n_k, 2)
-        Possible ``(u, v)`` of keypoint k, image pixels; ``n_k ≥ 1``. The combinations are
-        the ``Π n_k`` rows of their product.
-    R, t : ndarray, shapes (3, 3) and (3,)
-        Nominal pose: every PnP starts there, and the error is measured from it.
-    chunk : int, optional
-        Problems solved together (default :data:`ENUMERATION_CHUNK`), ≥ 1: the memory
-        stays bounded whatever the number of combinations.
-
-    Returns
-    -------
-    ndarray, shape (6,)
-        ``max`` over the combinations of ``|Δroll|, |Δpitch|, |Δyaw|`` (degrees, wrapped)
-        and ``|Δt_x|, |Δt_y|, |Δt_z|`` (metres); ``inf`` on every axis if PnP flags some
-        combination's pose as not valid.
-    """
-    return _enumerate(seed, keypoints, R, t, np.ones(6), chunk)[0]
-
-
-def _enumerate(seed, keypoints, R, t, eps, chunk=None) -> tuple:
-    """:func:`enumerated_pose_error`, the combination (one index per keypoint) whose
-    error is farthest outside ``eps (6,)`` (the largest ``max_i error_i / eps_i``) and,
-    per keypoint, which of its pixels ``(n_k,)`` bool take part in a combination outside
-    ``eps``."""
-    chunk = ENUMERATION_CHUNK if chunk is None else chunk
-    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
-        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
-    points = [np.asarray(p, dtype=np.float64) for p in keypoints]
-    for k, p in enumerate(points):
-        if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:
-            raise ValueError(f"keypoints[{k}]: expected shape (n >= 1, 2), got {p.shape}")
-    sizes = tuple(len(p) for p in points)
-    total = math.prod(sizes)
-    worst, farthest, where = np.zeros(6), -1.0, 0
-    involved = [np.zeros(n, dtype=bool) for n in sizes]
-    for begin in range(0, total, int(chunk)):
-        index = np.unravel_index(np.arange(begin, min(begin + int(chunk), total)), sizes)
-        V = np.stack([p[i] for p, i in zip(points, index)], axis=1)  # (B, K, 2)
-        errors = _pose_errors(seed, V, R, t)
-        worst = np.maximum(worst, errors.max(0))
-        ratio = (errors / eps).max(1)
-        if ratio.max() > farthest:
-            farthest, where = float(ratio.max()), begin + int(ratio.argmax())
-        outside = ~inside_tolerance(errors, eps)
-        for mask, i in zip(involved, index):
-            mask[i[outside]] = True
-    return worst, np.array(np.unravel_index(where, sizes)), involved
 
 
 def pose_bound(backbone, hull, seed, R, t, M, eps, *, kappa: float = 1.0, **search) -> dict:
@@ -253,7 +138,8 @@ class HullPoseBound:
     What depends on the hull only is made once, when a cell first needs it, and shared by
     every :meth:`decide` (a campaign's α, κ cells of one hull): the argmax poses of the
     seed, the vertices and random images, the region search, the enumeration of region
-    pixels, the float64 model and the targeted attacks.
+    pixels, the float64 model and the targeted attacks (the argmax poses and the float64
+    model are :attr:`poses`, a :class:`~kpstudy.certify.pose_bound_attack.HullArgmaxPoses`).
 
     Parameters
     ----------
@@ -339,11 +225,9 @@ class HullPoseBound:
         self.V = np.asarray(seed.keypoints, dtype=np.float64)
         centers = np.rint(to_input_pixels(self.V, self.factors))
         self.centers = np.clip(centers, 0, hm - 1).astype(np.int64)
-        self.pooling = _pooling(self.centers, self.stride, hm)
-        self._errors: dict = {}  # λ digest → argmax pose errors (6,)
-        self._argmax: dict = {}  # λ digest → argmax pixels, flat heatmap indices (K,)
+        self.pooling = region_pooling(self.centers, self.stride, hm)
+        self.poses = HullArgmaxPoses(backbone, hull, seed, R, t)  # each λ's made once
         self._made: dict = {}  # shared step → (value, seconds)
-        self._model64 = None
 
     def decide(self, eps, kappa: float = 1.0) -> dict:
         """The verdict and record for Ξ of half-widths ``eps``.
@@ -387,18 +271,18 @@ class HullPoseBound:
         start, self._spent = time.perf_counter(), 0.0
         eps = np.asarray(eps, dtype=np.float64)
         seed_lam = torch.zeros(1, self.hull.n, dtype=torch.float64)
-        seed_inside = bool(inside_tolerance(self._argmax_errors(seed_lam)[0], eps).all())
+        seed_inside = bool(inside_tolerance(self.poses.errors(seed_lam)[0], eps).all())
         # Witnesses first: the seed, the hull's corners and random images. One whose argmax
         # pose leaves Ξ decides 'violated', and the search is skipped (its regions: all).
         first = _first_points(self.hull, self.sample_seed)
         corners = 1 + self.hull.n  # the seed and the other vertices, then random images
-        early = self._outside(eps, first[:corners])
+        early = self.poses.first_outside(eps, first[:corners])
         if early is None:
-            early = self._outside(eps, first[corners:])
+            early = self.poses.first_outside(eps, first[corners:])
         skipped = early is not None
         if skipped:
             hm = self.backbone.heatmap_size
-            regions, pixels = _everywhere(hm), [_grid(hm)] * len(self.V)
+            regions, pixels = unsearched_regions(hm), [pixel_grid(hm)] * len(self.V)
         else:
             regions, pixels = self._shared("search", lambda: self._search(first))
         verdict = self._judge(eps, kappa, regions, pixels, early)
@@ -459,7 +343,7 @@ class HullPoseBound:
         # Witnesses are real images: their argmax pose decides 'violated'.
         if early is None:
             points = [lam for w in regions.witnesses for lam in w.values()]
-            found = self._outside(eps, points)
+            found = self.poses.first_outside(eps, points)
             verdict["bound"], extremes = linearised_bound(self.M, deviations)
         else:
             found = early
@@ -473,13 +357,13 @@ class HullPoseBound:
         V_corner = np.stack(
             [self.V + np.stack([d[i] for d, i in zip(deviations, row)]) for row in picks]
         )
-        verdict["nonlinear"] = _pose_errors(seed, V_corner, R, t).max(0)
+        verdict["nonlinear"] = pnp_pose_errors(seed, V_corner, R, t).max(0)
         if combinations <= MAX_COMBINATIONS:
             # Exact over the product of the regions; a combination outside Ξ keeps it
             # open, whatever the linearised bound says.
             exact, farthest, involved = self._shared(
                 ("enumeration", eps.tobytes(), digest(*pixels)),
-                lambda: _enumerate(seed, positions, R, t, eps),
+                lambda: enumerate_combinations(seed, positions, R, t, eps),
             )
             verdict.update(exact=exact, involved=involved)
             inside = inside_tolerance(exact, eps)  # exact: κ is the linearisation's margin
@@ -496,8 +380,9 @@ class HullPoseBound:
 
     def _refine_focus(self, eps, verdict, regions, pixels, budget: int) -> list | None:
         """Per keypoint, the cells an ``unknown`` verdict's second search aims at
-        (:func:`_focus`: possible, unreached, holding an involved pixel), or None where
-        there are none or more than :data:`FOCUS_PER_NODE` per node of ``budget``.
+        (:func:`~kpstudy.certify.pose_bound_regions.focus_cells`: possible, unreached,
+        holding an involved pixel), or None where there are none or more than
+        :data:`FOCUS_PER_NODE` per node of ``budget``.
 
         A pixel is involved, under the enumeration rule, when it takes part in a
         combination outside Ξ; under the linearised rule, when it alone takes the pose
@@ -511,7 +396,7 @@ class HullPoseBound:
             moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)
             for k, pixel in moves:
                 involved[k] |= (pixels[k] == pixel).all(1)
-        focus = _focus(regions, self.pooling, self.backbone.heatmap_size, involved)
+        focus = focus_cells(regions, self.pooling, self.backbone.heatmap_size, involved)
         cells = sum(len(f) for f in focus)
         return focus if 0 < cells <= FOCUS_PER_NODE * budget else None
 
@@ -561,7 +446,7 @@ class HullPoseBound:
             ("attack", digest(targets, *starts)),
             lambda: targeted_witness(self.backbone, self.hull, targets, starts),
         )
-        return None if lam is None else self._outside(eps, [lam])
+        return None if lam is None else self.poses.first_outside(eps, [lam])
 
     def _seed_argmax(self) -> np.ndarray:
         """The seed image's argmax pixels ``(K, 2)``, heatmap ``(u, v)``, made once per
@@ -577,55 +462,19 @@ class HullPoseBound:
 
     def _search(self, first) -> tuple:
         """The region search. At stride 1 its witnesses start from the argmax pixels at
-        ``first`` (λ, made by :meth:`_argmax_errors`), the random images first and then
+        ``first`` (λ, evaluated by :attr:`poses`), the random images first and then
         the corners, as the search would take them itself: no image is evaluated twice."""
         if self.stride != 1:
             return search_regions(self.backbone, self.hull, self.centers, self.stride, self.search)
         order = [*first[1 + self.hull.n :], *first[: 1 + self.hull.n]]
         witnesses = [{} for _ in self.V]
         for lam in order:
-            for k, pixel in enumerate(self._argmax[digest(lam)]):
+            for k, pixel in enumerate(self.poses.pixels(lam)):
                 witnesses[k].setdefault(int(pixel), lam)
         search = dict(self.search, samples=0)
         return search_regions(
             self.backbone, self.hull, self.centers, 1, search, witnesses=witnesses
         )
-
-    def _argmax_errors(self, lam) -> np.ndarray:
-        """:func:`argmax_pose_errors` of ``hull.image(lam)`` for ``lam (P, n)``, each
-        point's made once; its argmax pixels (flat heatmap indices ``(K,)``) are kept in
-        :attr:`_argmax`."""
-        keys = [digest(row) for row in lam]
-        missing = [i for i, k in enumerate(keys) if k not in self._errors]
-        if missing:
-            images = self.hull.image(lam[missing])
-            flat, errors = _argmax_poses(self.backbone, images, self.seed, self.R, self.t)
-            for i, f, e in zip(missing, flat, errors):
-                self._errors[keys[i]], self._argmax[keys[i]] = e, f
-        return np.stack([self._errors[k] for k in keys])
-
-    def _outside(self, eps, points) -> list | None:
-        """λ (a list) of the first of ``points`` whose image's argmax → PnP pose lies
-        outside Ξ (half-widths ``eps``), else None. A point found in the model's dtype
-        counts only if the float64 model at the exact hull point
-        (``hull.image(λ, float64)``) agrees; None for no ``points``."""
-        if not len(points):
-            return None
-        lam = torch.unique(torch.stack(list(points)), dim=0)
-        outside = np.flatnonzero(~inside_tolerance(self._argmax_errors(lam), eps))
-        if not outside.size:
-            return None
-        backbone = self.backbone
-        if next(backbone.parameters(), torch.empty(0)).dtype == torch.float64:
-            return lam[outside[0]].tolist()
-        if self._model64 is None:
-            self._model64 = copy.deepcopy(backbone).double()
-        for rows in np.array_split(outside, -(-len(outside) // 4)):  # the first confirmed
-            images = self.hull.image(lam[rows], dtype=torch.float64)
-            confirmed = argmax_outside(self._model64, images, self.seed, self.R, self.t, eps)
-            if confirmed.size:
-                return lam[rows[confirmed[0]]].tolist()
-        return None
 
 
 def check_start_splits(start_splits, name: str = "start_splits") -> None:
@@ -643,205 +492,8 @@ def _listed(values) -> list | None:
     return None if values is None else values.tolist()
 
 
-def _pooling(centers, stride: int, heatmap_size: int):
-    """The stride-``stride`` cells around ``centers (K, 2)`` the region search bounds."""
-    half = np.full_like(centers, (stride - 1) // 2)
-    return keypoint_pooling(centers, half, (heatmap_size, heatmap_size))
-
-
-def search_regions(
-    backbone, hull, centers, stride: int, search: dict, focus=None, resume=None, witnesses=None
-):
-    """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
-    stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords, ``focus``, ``resume`` and ``witnesses`` (per keypoint, ``{cell: λ}``); the
-    :class:`Regions` and each keypoint's pixels ``(n_k, 2)``. At stride 1 the proxy's
-    cells are the heatmap pixels in the backbone's own order, so the backbone is searched
-    itself: its output keeps the zonotope's error symbols in blocks that the search reads
-    where it needs them."""
-    hm = backbone.heatmap_size
-    pooling = _pooling(centers, stride, hm)
-    if stride == 1:
-        model, sizes = backbone, [hm * hm] * len(centers)
-    else:
-        model = build_proxy(backbone, pooling, centers).eval()
-        sizes = model.spec.group_sizes
-    regions = reachable_argmax(
-        model, hull, sizes, focus=focus, resume=resume, witnesses=witnesses, **search
-    )
-    return regions, region_pixels(regions, pooling, hm)
-
-
-def _focus(regions, pooling, heatmap_size: int, involved) -> list[np.ndarray]:
-    """Per keypoint, its possible cells (indices of ``regions.possible[k]``'s group) that
-    hold a pixel of ``involved[k]`` (bool over :func:`region_pixels`' pixels) and have no
-    witness: the cells a further split may remove."""
-    out = []
-    pixels = region_pixels(regions, pooling, heatmap_size)
-    for k, pair in enumerate(pooling):
-        bad = np.zeros((heatmap_size, heatmap_size), dtype=bool)  # [u, v]
-        u, v = pixels[k][involved[k]].astype(np.int64).T
-        bad[u, v] = True
-        cells = np.asarray(regions.possible[k], dtype=np.int64)
-        boxes = _cell_boxes(cells, pair, heatmap_size)
-        out.append(
-            np.array(
-                [
-                    int(c)
-                    for c, (u0, u1, v0, v1) in zip(cells, boxes)
-                    if c not in regions.witnesses[k] and bad[u0 : u1 + 1, v0 : v1 + 1].any()
-                ],
-                dtype=np.int64,
-            )
-        )
-    return out
-
-
-def _grid(heatmap_size: int) -> np.ndarray:
-    """Every heatmap pixel ``(u, v)``, sorted, ``(heatmap_size², 2)``."""
-    u, v = np.meshgrid(np.arange(heatmap_size), np.arange(heatmap_size), indexing="ij")
-    return np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
-
-
-def _everywhere(heatmap_size: int) -> Regions:
-    """The regions of a search that was skipped: every pixel possible, none reached."""
-    size = heatmap_size * heatmap_size
-    return Regions([size], [np.arange(size)], [{}], 0.0, 0, {"stopped": None})
-
-
 def _first_points(hull, sample_seed: int, samples: int = 64) -> list[torch.Tensor]:
     """λ of the seed image, the hull's other vertices and ``samples`` random images."""
     corners = torch.eye(hull.n, dtype=torch.float64)
     random = hull.sample(samples, sample_seed).to(torch.float64)
     return [torch.zeros(hull.n, dtype=torch.float64), *corners, *random]
-
-
-def argmax_outside(backbone, images, seed, R, t, eps) -> np.ndarray:
-    """Indices of ``images (B, 3, s, s)`` (normalised model inputs) whose argmax → PnP
-    pose lies outside Ξ (half-widths ``eps``, 6: degrees, metres) around ``(R, t)``."""
-    errors = argmax_pose_errors(backbone, images, seed, R, t)
-    return np.flatnonzero(~inside_tolerance(errors, eps))
-
-
-def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:
-    """Pose errors ``(B, 6)`` (degrees, metres; ``inf`` where PnP flags the pose) of the
-    argmax → PnP pipeline on ``images (B, 3, s, s)`` against ``(R, t)``."""
-    return _argmax_poses(backbone, images, seed, R, t)[1]
-
-
-def _argmax_poses(backbone, images, seed, R, t) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`argmax_pose_errors` and the argmax pixels it used, as flat heatmap indices
-    ``(B, K)`` (the first maximum, as :func:`argmax_keypoints` takes it)."""
-    factors = scale_factors(seed.image_size, backbone.heatmap_size)
-    with torch.no_grad():
-        heatmaps = backbone(images)
-    uv = argmax_keypoints(heatmaps)  # (B, K, 2) as (u, v)
-    flat = (uv[..., 1] * heatmaps.shape[-1] + uv[..., 0]).numpy()
-    errors = _pose_errors(seed, to_image_pixels(uv.double().numpy(), factors), R, t)
-    return flat, errors
-
-
-def targeted_witness(
-    backbone, hull, targets, starts, *, steps: int = 100, lr: float = 0.1
-) -> torch.Tensor | None:
-    """A point λ of ``hull`` whose image puts keypoints' argmax on target pixels, if
-    projected gradient steps find one (an attack: None proves nothing).
-
-    Parameters
-    ----------
-    backbone : nn.Module
-        Heatmap model, ``(B, 3, s, s) → (B, K, H, W)``.
-    hull : kpstudy.verify.ConvexHull
-    targets : array_like of int, shape (K, 2) or (T, K, 2)
-        ``(u, v)`` heatmap pixel per keypoint, for one target or T alternatives (all
-        searched together); a negative entry leaves that keypoint free.
-    starts : list of Tensor, shape (n,)
-        λ to start from (one run per start and target, batched).
-    steps, lr : int, float
-        Adam steps on the vertex weights' logits (a softmax keeps λ in the hull).
-
-    Returns
-    -------
-    Tensor, shape (n,), float64, or None
-        λ whose image's argmax (torch's first maximum) is one target's pixels, on every
-        keypoint that target sets, in float32.
-    """
-    W = backbone.heatmap_size
-    targets = torch.as_tensor(np.asarray(targets), dtype=torch.int64)
-    targets = targets[None] if targets.ndim == 2 else targets  # (T, K, 2)
-    if targets.ndim != 3 or targets.shape[-1] != 2 or not len(targets):
-        raise ValueError(f"targets: expected shape (K, 2) or (T, K, 2), got {tuple(targets.shape)}")
-    T, S = len(targets), len(starts)
-    fixed = (targets >= 0).all(-1).repeat_interleave(S, 0)  # (T·S, K): the set keypoints
-    flat = (targets[..., 1] * W + targets[..., 0]).clamp_min(0)
-    flat = flat.repeat_interleave(S, 0)[..., None]  # (T·S, K, 1)
-    lam0 = torch.stack([torch.as_tensor(s, dtype=torch.float64) for s in starts])
-    weights = torch.cat([1.0 - lam0.sum(1, keepdim=True), lam0], 1).clamp_min(1e-3)
-    logits = weights.log().float().repeat(T, 1).requires_grad_(True)  # (T·S, n + 1)
-    optimiser = torch.optim.Adam([logits], lr=lr)
-    for _ in range(steps + 1):
-        with torch.enable_grad():
-            lam = torch.softmax(logits, 1)[:, 1:]
-            heat = backbone(hull.image(lam, dtype=torch.float32)).flatten(2)  # (B, K, H·W)
-            target = heat.gather(2, flat)[..., 0]
-            rival = heat.scatter(2, flat, float("-inf")).amax(2)
-            # < 0: the target is the unique maximum; free keypoints count as reached.
-            gap = torch.where(fixed, rival - target, torch.full_like(target, -1.0))
-            done = (gap < 0).all(1)
-            if done.any():
-                return lam[int(done.nonzero()[0])].detach().double()
-            if not gap.requires_grad:  # a model without a gradient in its input
-                return None
-            # The gradient of λ's logits only (the model's parameters get none).
-            (logits.grad,) = torch.autograd.grad(torch.relu(gap + 1e-2).sum(), logits)
-        optimiser.step()
-    return None
-
-
-def single_moves(seed, pixels, base, factors, R, t, eps) -> list[tuple[int, np.ndarray]]:
-    """The possible moves of one keypoint that alone take the pose outside Ξ.
-
-    Parameters
-    ----------
-    seed : kpstudy.certify.allocation_method.SeedImage
-    pixels : sequence of K arrays, shape (n_k, 2)
-        Possible heatmap pixels ``(u, v)`` of each keypoint.
-    base : ndarray, shape (K, 2)
-        Heatmap pixels ``(u, v)`` the other keypoints keep (the seed image's argmax).
-    factors : pair
-        :func:`kpstudy.models.preprocess.scale_factors` of the seed image and the heatmaps.
-    R, t : nominal pose; eps : ndarray, shape (6,), Ξ's half-widths (degrees, metres).
-
-    Returns
-    -------
-    list of (int, ndarray (2,))
-        ``(k, pixel)`` with ``pixel ≠ base[k]`` in keypoint k's region whose pose (every
-        other keypoint at ``base``) lies outside Ξ, farthest outside first (the largest
-        ``max_i error_i / eps_i``).
-    """
-    base = np.asarray(base, dtype=np.float64)
-    moves = [(k, p) for k, region in enumerate(pixels) for p in region if np.any(p != base[k])]
-    if not moves:
-        return []
-    V = np.repeat(base[None], len(moves), 0)
-    for row, (k, p) in enumerate(moves):
-        V[row, k] = p
-    errors = _pose_errors(seed, to_image_pixels(V, factors), R, t)
-    ratio = (errors / eps).max(1)
-    order = [i for i in np.argsort(-ratio, kind="stable") if ratio[i] > 1]
-    return [moves[i] for i in order]
-
-
-def _pose_errors(seed, V, R, t) -> np.ndarray:
-    """Pose errors ``(B, 6)`` of PnP (from the nominal pose) on keypoints ``V (B, K, 2)``;
-    ``inf`` where PnP flags the pose as not valid (:class:`kpstudy.pose.pnp.PnPResult`), so that
-    it never lies inside Ξ."""
-    B = len(V)
-    pose = solve_pnp_batch(
-        seed.points_3d, V, seed.K, (np.broadcast_to(R, (B, 3, 3)), np.broadcast_to(t, (B, 3)))
-    )
-    errors = np.full((B, 6), np.inf)
-    ok = pose.valid
-    dr = wrap_degrees(euler_from_matrix(pose.R[ok]) - euler_from_matrix(R)[None])
-    errors[ok] = np.concatenate([dr, np.abs(pose.t[ok] - t)], axis=1)
-    return errors

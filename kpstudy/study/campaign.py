@@ -912,7 +912,7 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
     in this process, one record each: what depends on the hull alone, such as the
     pose-bound method's region search, is made once (:func:`kpstudy.certify.certify_cells`)."""
     from data_gen.perturb import load_perturbations
-    from kpstudy.certify.allocation_method import certify_cells
+    from kpstudy.certify.hull import certify_cells
 
     first = instances[0]
     if len(_by_hull(instances)) != 1:
