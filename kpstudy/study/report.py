@@ -172,8 +172,8 @@ def write_report(out, profile: dict | None = None) -> Path:
 
 def run_cost(out) -> pd.DataFrame:
     """What each verification table of the run at ``out`` cost, from its records
-    (``tables/<name>_records.csv`` with ``image_id`` and ``total_time``), and what the paper's seed count would cost at the
-    same seconds per instance.
+    (``tables/<name>_records.csv`` with ``image_id`` and ``total_time``), and what the
+    paper's seed count would cost at the same seconds per instance.
 
     Returns
     -------
