@@ -242,6 +242,12 @@ def main(argv=None) -> int:
     )
     eb.add_argument("--vnnlib-version", default="1.0", help="1.0 (VNN-COMP, default) or 2.0")
     eb.add_argument("--dtype", default="float32", help="float32 (default) or float64 ONNX")
+    eb.add_argument(
+        "--property-form",
+        default="compact",
+        help="compact (default: each keypoint's worst margin in the ONNX, one disjunct per "
+        "keypoint) or full (the cells as outputs, one disjunct per competing cell)",
+    )
     args = parser.parse_args(argv)
 
     try:
@@ -445,6 +451,7 @@ def _export_benchmark(args, argv) -> None:
         input_form=args.input_form,
         vnnlib_version=args.vnnlib_version,
         dtype=args.dtype,
+        property_form=args.property_form,
         command=shlex.join(["python", "-m", "kpstudy", *map(str, argv)]),
     )
     for name, reason in done["skipped"]:

@@ -73,14 +73,17 @@ def test_layout_and_instances_csv(study, bench):  # noqa: F811
     assert digest in readme and f"kpstudy {__version__}" in readme
     assert "python -m kpstudy export-benchmark --checkpoint" in readme
     assert all(n in readme for n in names) and "target cell" in readme
+    assert "property form `compact`" in readme and "one disjunct `Y_i ≤ 0`" in readme
     for n in names:  # the spec's comments name the instance's own ONNX file
         assert f"onnx/{n}.onnx" in (bench / "vnnlib" / f"{n}.vnnlib").read_text()
 
 
 def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
-    """Each ONNX (onnxruntime, float32) gives the proxy's outputs at the hull's vertices and
-    at Dirichlet samples, its input u mapped onto λ by the sorted spacings; the VNN-LIB
-    file holds one disjunct per margin row of the proxy's spec."""
+    """Each ONNX (onnxruntime, float32; the default compact form) gives each keypoint's
+    least margin of the proxy's outputs at the hull's vertices and at Dirichlet samples,
+    its input u mapped onto λ by the sorted spacings; the VNN-LIB file holds one disjunct
+    per keypoint (23) in a few kilobytes, where the full form has one per competing cell
+    (~4·10^4, ~2 MB)."""
     data, checkpoint = study
     backbone, seed_of = _context(str(checkpoint), str(data))
     for instance in grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1):
@@ -98,13 +101,20 @@ def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
         lam = torch.cat([torch.zeros(1, hull.n), torch.eye(hull.n)]).double()
         lam = torch.cat([lam, hull.sample(4, seed=3)])
         with torch.no_grad():
-            want = built.proxy(hull.image(lam)).numpy()
+            cells = built.proxy(hull.image(lam))
+        groups = sorted(set(spec.row_group.tolist()))  # the keypoints with competing cells
+        want = spec.group_min(spec.margins(cells))[:, groups].numpy()
+        scale = np.abs(cells.numpy()).max()
         for u, y in zip(box_of_lambda(lam), want):
             got = sess.run(["y"], {"u": u[None].float().numpy()})[0][0]
-            np.testing.assert_allclose(got, y, rtol=1e-4, atol=1e-4 * np.abs(want).max())
-        poly = read_vnnlib_polytope(bench / "vnnlib" / f"{name}.vnnlib")
-        assert (poly["n_inputs"], poly["n_outputs"]) == (hull.n, spec.n_outputs)
-        assert poly["disjuncts"] == list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+            np.testing.assert_allclose(got, y, rtol=1e-4, atol=1e-4 * scale)
+        path = bench / "vnnlib" / f"{name}.vnnlib"
+        poly = read_vnnlib_polytope(path)
+        assert spec.n_groups == 23 and len(groups) <= 23 < spec.n_rows
+        assert (poly["n_inputs"], poly["n_outputs"]) == (hull.n, len(groups))
+        assert poly["disjuncts"] == [(None, i) for i in range(len(groups))]
+        # measured: 2.2 kB; the full form of these instances: 38,691 disjuncts, 2.2 MB
+        assert path.stat().st_size < 3000, (spec.n_rows, path.stat().st_size)
 
 
 def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
@@ -152,19 +162,25 @@ def test_rerun_gives_the_same_bytes(study, bench, tmp_path):  # noqa: F811
         moved.rename(bench)
 
 
-def test_vnnlib_2_simplex_form_parses(study, tmp_path):  # noqa: F811
+def test_vnnlib_2_simplex_full_form_parses(study, tmp_path):  # noqa: F811
+    """VNN-LIB 2.0, the simplex input form and the full property form: the file parses,
+    the ONNX takes λ and gives the proxy's cells, one output per cell."""
     vnnlib = pytest.importorskip("vnnlib")
     out = tmp_path / "bright"
     args = [*BRIGHTNESS, "--vnnlib-version", "2.0", "--input-form", "simplex"]
-    assert export(study, out, *args) == 0
+    assert export(study, out, *args, "--property-form", "full") == 0
     ((name, spec_file, timeout),) = rows_of(out)
     assert timeout == "60" and (out / name).is_file()
     query = vnnlib.parse_query_file(str(out / spec_file))
     ((x,),) = [net.inputs for net in query.networks]
+    ((y,),) = [net.outputs for net in query.networks]
     assert x.dtype == vnnlib.DType.F32 and list(x.shape) == [1, 2]
     sess = ort.InferenceSession(str(out / name), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == ["lam"]
-    assert "Σ λ ≤ 1" in (out / "README.md").read_text()
+    (output,) = sess.get_outputs()
+    assert list(y.shape) == output.shape and output.shape[1] > 23
+    readme = (out / "README.md").read_text()
+    assert "Σ λ ≤ 1" in readme and "property form `full`" in readme
 
 
 def _refused(capsys, word, call):
@@ -198,6 +214,7 @@ def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # 
     _refused(capsys, "kind", lambda: export(study, out, *bad_kind))
     _refused(capsys, "input_form", lambda: export(study, out, *BLOCKS, "--input-form", "cube"))
     _refused(capsys, "dtype", lambda: export(study, out, *BLOCKS, "--dtype", "float16"))
+    _refused(capsys, "property_form", lambda: export(study, out, *BLOCKS, "--property-form", "min"))
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
     _refused(

@@ -11,7 +11,9 @@ on the torch model at the exact hull point, up to a solver tolerance.
 Marabou 2.0.0's ONNX reader has no ``Pad``, ``AveragePool`` or ``Slice``, so the pooling
 here is one ``Gemm`` (the cell pools' matrices, block-diagonal over the channels); the
 xfail test below records that the study's own proxy is out of its reach, so that it flips
-when Marabou reads it.
+when Marabou reads it. It has no ``Gather`` either, which the compact property form's
+worst-margin tree is made of: the instances here are exported in the full form (one
+disjunct per margin row), the same verdict (tests/test_verify_export.py).
 """
 
 from __future__ import annotations
@@ -122,7 +124,9 @@ def test_marabou_agrees_with_verify(tmp_path, marabou, form):
         start = time.perf_counter()
         ours = verify(model, hull, spec, timeout=600, max_nodes=1000)
         ours_time = time.perf_counter() - start
-        info = export_instance(tmp_path / str(i), model, hull, spec, input_form=form)
+        info = export_instance(
+            tmp_path / str(i), model, hull, spec, input_form=form, property_form="full"
+        )
         code, x, y, seconds = marabou.solve(info["onnx"], info["vnnlib"], MARABOU_SECONDS)
         assert not code.startswith("error"), (i, code)
         double = copy.deepcopy(model).double()
@@ -171,7 +175,9 @@ def test_marabou_reads_the_box_form(tmp_path):
     Relu after the sort keeps its network-level reasoner from counting ``X0`` twice."""
     for i in (1, 2, 3):
         model, hull = make_instance(i)
-        info = export_instance(tmp_path / str(i), model, hull, model.spec, input_form="box")
+        info = export_instance(
+            tmp_path / str(i), model, hull, model.spec, input_form="box", property_form="full"
+        )
         u = np.linspace(0.7, 0.2, hull.n, dtype=np.float32)[None]  # descending: every swap
         want, got = _onnxruntime_and_marabou(info["onnx"], u)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
@@ -193,6 +199,8 @@ def test_marabou_reads_the_keypoint_proxy(tmp_path):
     pooling = keypoint_pooling(centers, [(1, 1), (0, 1)], (SIDE, SIDE))
     proxy = build_proxy(backbone, pooling, centers, heatmap_size=(SIDE, SIDE))
     hull = make_instance(1)[1]
-    info = export_instance(tmp_path, proxy.eval(), hull, proxy.spec, input_form="simplex")
+    info = export_instance(
+        tmp_path, proxy.eval(), hull, proxy.spec, input_form="simplex", property_form="full"
+    )
     want, got = _onnxruntime_and_marabou(info["onnx"], np.full((1, hull.n), 0.25, np.float32))
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)

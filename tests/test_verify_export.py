@@ -10,8 +10,16 @@ import torch
 from onnx.reference import ReferenceEvaluator
 from torch import nn
 
-from kpstudy.models.pooling import build_cell_pool
-from kpstudy.verify.export import export_instance, point_of_input, read_vnnlib_polytope
+from kpstudy.models.backbones import build_backbone
+from kpstudy.models.pooling import build_cell_pool, keypoint_cells
+from kpstudy.models.proxy import build_proxy
+from kpstudy.verify import verify
+from kpstudy.verify.export import (
+    WorstMargins,
+    export_instance,
+    point_of_input,
+    read_vnnlib_polytope,
+)
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.simplex_map import box_of_lambda
 from kpstudy.verify.spec import ArgmaxSpec
@@ -70,6 +78,13 @@ def box(seed=0):
     return Box(centre - radius, centre + radius)
 
 
+def worst_margins(spec, y):
+    """Each group's least margin ``(B, G)`` from outputs ``y (B, m)``, over the groups with
+    margin rows: what the compact form's graph computes, here from the spec's rows."""
+    groups = sorted(set(spec.row_group.tolist()))
+    return spec.group_min(spec.margins(torch.as_tensor(y)))[:, groups].numpy()
+
+
 def instance(kind):
     if kind == "conv":
         return conv_net(), ArgmaxSpec([4, 2], [1, 0])
@@ -108,14 +123,19 @@ def _session(path, dtype=torch.float32):
     ("set_kind", "form"), [("hull", "box"), ("hull", "simplex"), ("cube", "box"), ("box", "box")]
 )
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_onnx_matches_torch(tmp_path, kind, set_kind, form, dtype):
-    """ONNX (onnxruntime) equals the torch model on the set's points: float32 to 1e-4,
-    float64 to 1e-10; the box input form maps u onto λ by the sorted spacings."""
+@pytest.mark.parametrize("prop", ["compact", "full"])
+def test_onnx_matches_torch(tmp_path, kind, set_kind, form, dtype, prop):
+    """ONNX (onnxruntime) equals the torch model on the set's points (the full form's
+    output; the compact form's: each group's least margin), float32 to 1e-4, float64 to
+    1e-10; the box input form maps u onto λ by the sorted spacings."""
     model, spec = instance(kind)
     input_set = {"hull": hull(3), "cube": hull(3, cls=Parallelotope), "box": box()}[set_kind]
-    info = export_instance(tmp_path / "inst", model, input_set, spec, input_form=form, dtype=dtype)
+    info = export_instance(
+        tmp_path / "inst", model, input_set, spec, input_form=form, dtype=dtype, property_form=prop
+    )
     assert info["onnx"].is_file() and info["vnnlib"].is_file()
-    assert (info["n_outputs"], info["n_disjuncts"]) == (spec.n_outputs, spec.n_rows)
+    sizes = (spec.n_outputs, spec.n_rows) if prop == "full" else (spec.n_groups,) * 2
+    assert (info["n_outputs"], info["n_disjuncts"], info["property_form"]) == (*sizes, prop)
     sess = _session(info["onnx"], dtype)
     (inp,) = sess.get_inputs()
     name = {"hull": "u" if form == "box" else "lam", "cube": "lam", "box": "x"}[set_kind]
@@ -132,7 +152,9 @@ def test_onnx_matches_torch(tmp_path, kind, set_kind, form, dtype):
         got = sess.run(["y"], {inp.name: p[None].to(dtype).numpy()})[0]
         with torch.no_grad():
             want = model.to(dtype)(x[None]).flatten(1).numpy()
-        assert got.shape == (1, spec.n_outputs) and got.dtype == want.dtype
+        if prop == "compact":
+            want = worst_margins(spec, want)
+        assert got.shape == (1, info["n_outputs"]) and got.dtype == want.dtype
         np.testing.assert_allclose(
             got, want, rtol=0, atol=1e-4 if dtype == torch.float32 else 1e-10
         )
@@ -151,7 +173,9 @@ def test_hull_vertices_are_exported_exactly(tmp_path, form):
     input forms: a Flatten model's output is the image itself."""
     input_set = hull(3, seed=4)
     spec = ArgmaxSpec([int(np.prod(S))], [0])
-    info = export_instance(tmp_path, nn.Flatten(), input_set, spec, input_form=form)
+    info = export_instance(
+        tmp_path, nn.Flatten(), input_set, spec, input_form=form, property_form="full"
+    )
     sess = _session(info["onnx"])
     corners = torch.cat([torch.zeros(1, 3), torch.eye(3)]).double()
     inputs = box_of_lambda(corners) if form == "box" else corners
@@ -169,13 +193,15 @@ def test_hull_vertices_are_exported_exactly(tmp_path, form):
         (1, ConvexHull, "simplex"),
     ],
 )
-def test_vnnlib_encodes_the_instance(tmp_path, n, cls, form):
+@pytest.mark.parametrize("prop", ["compact", "full"])
+def test_vnnlib_encodes_the_instance(tmp_path, n, cls, form, prop):
     model = TwoKeypointNet()
     spec = model.spec(keep_b=False)
     input_set = hull(n, cls=cls)
-    info = export_instance(tmp_path, model, input_set, spec, input_form=form)
+    info = export_instance(tmp_path, model, input_set, spec, input_form=form, property_form=prop)
     poly = read_vnnlib_polytope(info["vnnlib"])
-    assert (poly["n_inputs"], poly["n_outputs"]) == (n, spec.n_outputs)
+    outputs = spec.n_outputs if prop == "full" else 1  # the compact form: group a's margin
+    assert (poly["n_inputs"], poly["n_outputs"], info["n_outputs"]) == (n, outputs, outputs)
     np.testing.assert_array_equal(poly["lower"], np.zeros(n))
     np.testing.assert_array_equal(poly["upper"], np.ones(n))
     if cls is ConvexHull and n > 1 and form == "simplex":
@@ -195,13 +221,20 @@ def test_vnnlib_encodes_the_instance(tmp_path, n, cls, form):
     else:
         lam = torch.from_numpy(x)
         np.testing.assert_array_equal(inside, input_set.contains_lambda(lam).numpy())
-    # one clause Y_neg >= Y_pos per margin row; the excluded group has none
-    pairs = list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
-    assert poly["disjuncts"] == pairs and info["n_disjuncts"] == len(pairs) > 0
-    excluded = range(spec.offsets[1], spec.offsets[2])
-    assert not any(j in excluded or t in excluded for j, t in pairs)
-    y = torch.randn(100, spec.n_outputs)
-    violated = torch.stack([y[:, j] >= y[:, t] for j, t in poly["disjuncts"]], 1).any(1)
+    y = torch.randn(100, spec.n_outputs, generator=torch.Generator().manual_seed(n))
+    y[:, spec.row_pos[0]] += 2.0  # group a's target wins in most rows, but not all
+    y[::3, spec.row_neg[2]] = y[::3, spec.row_pos[2]]  # ties: violations in both forms
+    if prop == "full":  # one clause Y_neg >= Y_pos per margin row; the excluded group has none
+        pairs = list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+        assert poly["disjuncts"] == pairs and info["n_disjuncts"] == len(pairs) > 0
+        excluded = range(spec.offsets[1], spec.offsets[2])
+        assert not any(j in excluded or t in excluded for j, t in pairs)
+        violated = torch.stack([y[:, j] >= y[:, t] for j, t in poly["disjuncts"]], 1).any(1)
+    else:  # one clause 0 >= Y_g per group with margin rows: group a's
+        assert poly["disjuncts"] == [(None, 0)] and info["n_disjuncts"] == 1
+        z = WorstMargins(spec)(y)
+        violated = torch.stack([z[:, g] <= 0 for _, g in poly["disjuncts"]], 1).any(1)
+    assert violated[::3].all() and not violated.all()
     assert torch.equal(violated, (spec.margins(y) <= 0).any(1))
 
 
@@ -214,7 +247,7 @@ def test_box_bounds_round_trip(tmp_path):
     np.testing.assert_array_equal(poly["lower"], input_set.lower.double().reshape(-1).numpy())
     np.testing.assert_array_equal(poly["upper"], input_set.upper.double().reshape(-1).numpy())
     assert poly["constraints"] == []
-    assert poly["disjuncts"] == list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+    assert poly["disjuncts"] == [(None, 0), (None, 1)]  # the compact form: one per group
 
 
 def test_spec_mismatch_writes_nothing(tmp_path):
@@ -242,6 +275,8 @@ def test_bad_arguments(tmp_path):
         export_instance(tmp_path / "a", conv_net(), hull(2), spec, dtype=torch.float16)
     with pytest.raises(ValueError, match="vnnlib_version"):
         export_instance(tmp_path / "a", conv_net(), hull(2), spec, vnnlib_version="3")
+    with pytest.raises(ValueError, match="^property_form: expected one of"):
+        export_instance(tmp_path / "a", conv_net(), hull(2), spec, property_form="min")
     assert list(tmp_path.iterdir()) == [path]
 
 
@@ -262,17 +297,26 @@ def test_export_failure_leaves_no_files(tmp_path):
     ("set_kind", "form"), [("hull", "box"), ("hull", "simplex"), ("cube", "box"), ("box", "box")]
 )
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_vnnlib_2_parses_with_the_vnnlib_package(tmp_path, set_kind, form, dtype):
+@pytest.mark.parametrize("prop", ["compact", "full"])
+def test_vnnlib_2_parses_with_the_vnnlib_package(tmp_path, set_kind, form, dtype, prop):
     """The VNN-LIB 2.0 file parses with the `vnnlib` package; where every input constraint
     is a bound, its VNN-COMP reachability form has the set's box and one output polytope
-    ``Y_t − Y_j ≤ 0`` per margin row."""
+    per disjunct: ``Y_t − Y_j ≤ 0`` per margin row (full form), ``Y_g ≤ 0`` per group
+    (compact form)."""
     vnnlib = pytest.importorskip("vnnlib")
     compat = pytest.importorskip("vnnlib.compat")
 
     model, spec = instance("cellpool")
     input_set = {"hull": hull(3), "cube": hull(3, cls=Parallelotope), "box": box()}[set_kind]
     info = export_instance(
-        tmp_path, model, input_set, spec, input_form=form, dtype=dtype, vnnlib_version="2.0"
+        tmp_path,
+        model,
+        input_set,
+        spec,
+        input_form=form,
+        dtype=dtype,
+        vnnlib_version="2.0",
+        property_form=prop,
     )
     query = vnnlib.parse_query_file(str(info["vnnlib"]))
     ((x,),) = [net.inputs for net in query.networks]
@@ -280,7 +324,7 @@ def test_vnnlib_2_parses_with_the_vnnlib_package(tmp_path, set_kind, form, dtype
     kind = vnnlib.DType.F64 if dtype == torch.float64 else vnnlib.DType.F32
     assert (x.dtype, y.dtype) == (kind, kind)
     assert list(x.shape) == ([1, *S] if set_kind == "box" else [1, 3])
-    assert list(y.shape) == [1, spec.n_outputs]
+    assert list(y.shape) == [1, info["n_outputs"]]
     if set_kind == "hull" and form == "simplex":  # Σ λ ≤ 1: not a bound
         assert len(query.assertions) == 2 * 3 + 2
         with pytest.raises(vnnlib.VNNLibException, match="simple bounds"):
@@ -295,6 +339,271 @@ def test_vnnlib_2_parses_with_the_vnnlib_package(tmp_path, set_kind, form, dtype
     rows = []
     for poly in case.output_constraints:
         (coeffs,) = np.array(poly.coeff_matrix)
-        assert list(poly.rhs) == [0.0] and sorted(coeffs[coeffs != 0]) == [-1.0, 1.0]
+        assert list(poly.rhs) == [0.0]
+        if prop == "compact":
+            assert list(coeffs[coeffs != 0]) == [1.0]
+            rows.append(int(np.flatnonzero(coeffs)[0]))
+            continue
+        assert sorted(coeffs[coeffs != 0]) == [-1.0, 1.0]
         rows.append((int(np.flatnonzero(coeffs == -1)[0]), int(np.flatnonzero(coeffs == 1)[0])))
-    assert rows == list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+    if prop == "compact":
+        assert rows == list(range(spec.n_groups))
+    else:
+        assert rows == list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+
+
+def study_proxy(name, keypoints, seed=0):
+    """The study's 64×64 heatmap CNN ``name`` (random weights; batch norms with random
+    statistics and affine parameters) under cell pooling, ``keypoints`` random keypoints
+    in cells of side 2 or 3 (about 10^3 cells per keypoint, as the allocation's)."""
+    torch.manual_seed(seed)
+    backbone = build_backbone(name, keypoints)
+    for m in backbone.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            nn.init.uniform_(m.weight, 0.5, 1.5)
+            nn.init.uniform_(m.bias, -0.5, 0.5)
+    rng = np.random.default_rng(seed)
+    centers = rng.integers(0, 64, (keypoints, 2))
+    cells = keypoint_cells(centers, centers + rng.integers(1, 3, (keypoints, 2)), (64, 64))
+    return build_proxy(backbone, cells, centers).eval()
+
+
+def input_bn_net():
+    """A batch norm on the input (it follows no convolution), then :func:`conv_net`."""
+    torch.manual_seed(1)
+    bn = nn.BatchNorm2d(3)
+    bn.running_mean.uniform_(-0.5, 0.5)
+    bn.running_var.uniform_(0.5, 2.0)
+    return nn.Sequential(bn, conv_net()).eval()
+
+
+def importer_faults(path) -> list[str]:
+    """What ONNX importers trip on in the graph at ``path``: a ``BatchNormalization`` node
+    or a ``training_mode`` attribute (onnx2pytorch: "Extraction of attribute training_mode
+    not implemented"), a symbolic dimension on a declared input or output or on any value
+    after strict shape inference (NeuralSAT took ``Flatteny_dim_0/1`` for (1, 1)), an
+    omitted (``''``) node input (read as the network input for the Pad value) or a
+    ``Pad`` without its value, and what the full checker refuses."""
+    model = onnx.load(path)
+    nodes = model.graph.node
+    faults = [f"{n.op_type} {n.name}" for n in nodes if n.op_type == "BatchNormalization"]
+    faults += [
+        f"training_mode on {n.name}"
+        for n in nodes
+        for a in n.attribute
+        if a.name == "training_mode"
+    ]
+    faults += [f"omitted input of {n.op_type} {n.name}" for n in nodes if "" in n.input]
+    faults += [
+        f"no pad value on {n.name}" for n in nodes if n.op_type == "Pad" and len(n.input) < 3
+    ]
+    values = [*model.graph.input, *model.graph.output]
+    try:
+        inferred = onnx.shape_inference.infer_shapes(model, strict_mode=True).graph
+        values += [*inferred.input, *inferred.output, *inferred.value_info]
+    except onnx.shape_inference.InferenceError as exc:
+        faults.append(f"shape inference: {exc}")
+    for v in values:
+        if not all(d.HasField("dim_value") for d in v.type.tensor_type.shape.dim):
+            faults.append(f"symbolic shape of {v.name}: {v.type.tensor_type.shape}")
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except onnx.checker.ValidationError as exc:
+        faults.append(f"checker: {exc}")
+    return faults
+
+
+@pytest.mark.parametrize("arch", ["cnn", "cnn_patch_smooth", "input_bn"])
+@pytest.mark.parametrize("prop", ["compact", "full"])
+def test_exported_graph_is_portable(tmp_path, arch, prop):
+    """The study's CNNs (batch norms after transposed convolutions, which the exporter
+    does not fold) under 23-keypoint cell pooling (Pad, Slice) over a hull, and a batch
+    norm that follows no convolution: no importer fault (:func:`importer_faults`), and
+    onnxruntime still gives the torch model's outputs at the hull's vertices and samples.
+    The compact form's VNN-LIB has one disjunct per keypoint, in a few kilobytes."""
+    if arch == "input_bn":
+        model, spec, shape = input_bn_net(), ArgmaxSpec([4, 2], [1, 0]), S
+    else:
+        model = study_proxy(arch, 23)
+        spec, shape = model.spec, (3, 64, 64)
+    g = torch.Generator().manual_seed(2)
+    x0 = torch.rand(1, *shape, generator=g)
+    input_set = ConvexHull(torch.cat([x0, x0 + 0.1 * torch.randn(2, *shape, generator=g)]))
+    info = export_instance(tmp_path, model, input_set, spec, property_form=prop)
+    assert importer_faults(info["onnx"]) == []
+    ops = {n.op_type for n in onnx.load(info["onnx"]).graph.node}
+    assert ("Gather" in ops) == (prop == "compact")
+    sess = _session(info["onnx"])
+    lam = torch.cat([torch.zeros(1, 2), torch.eye(2), input_set.sample(3, seed=4)]).double()
+    with torch.no_grad():
+        want = model(input_set.image(lam, dtype=torch.float32)).flatten(1).double()
+    if prop == "compact":
+        want = torch.from_numpy(worst_margins(spec, want))
+    for u, y in zip(box_of_lambda(lam), want):
+        got = sess.run(["y"], {"u": u[None].float().numpy()})[0][0]
+        np.testing.assert_allclose(got, y, rtol=1e-4, atol=1e-4 * want.abs().max().item())
+    if arch != "input_bn":
+        size = info["vnnlib"].stat().st_size
+        if prop == "compact":  # measured: 2.2 kB (the full form: 0.86 MB, 15,388 clauses)
+            assert info["n_disjuncts"] == spec.n_groups == 23 and size < 3000
+        else:
+            assert info["n_disjuncts"] == spec.n_rows > 10_000 and size > 500_000
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_worst_margins_are_the_least_margin_rows(dtype):
+    """Groups of 1 to 18 rows (odd counts carried to the next level, one group without
+    rows, one without a target): each column of :class:`WorstMargins` is its group's
+    least margin row, and it is ``≤ 0`` exactly where a row is, ties (a margin of
+    exactly 0, a violation for ``verify``) included."""
+    spec = ArgmaxSpec([1, 3, 7, 2, 18, 5, 4], [0, 1, 6, None, 3, 4, 0])
+    tree = WorstMargins(spec)
+    assert tree.groups == [1, 2, 4, 5, 6]
+    g = torch.Generator().manual_seed(0)
+    y = torch.randn(400, spec.n_outputs, generator=g, dtype=dtype)
+    y[:, spec.row_pos.unique()] += 2.0  # most groups' targets win, some do not
+    tied = torch.randint(spec.n_rows, (200,), generator=g)
+    y[torch.arange(200), spec.row_neg[tied]] = y[torch.arange(200), spec.row_pos[tied]]
+    z = tree(y)
+    want = spec.group_min(spec.margins(y))[:, tree.groups]
+    assert (want == 0).any() and (want > 0).any() and (want < 0).any()
+    assert torch.equal(z <= 0, want <= 0)
+    torch.testing.assert_close(z, want, rtol=0, atol=8 * torch.finfo(dtype).eps * y.abs().max())
+
+
+@pytest.mark.parametrize("kind", ["conv", "cellpool"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compact_graph_gives_the_full_graphs_worst_margins(tmp_path, kind, dtype):
+    """At the hull's vertices and Dirichlet samples, the compact graph's outputs are the
+    least margins ``Y_t − Y_j`` of the full graph's outputs, per group (onnxruntime in
+    float32, onnx's reference evaluator in float64)."""
+    model, spec = instance(kind)
+    input_set = hull(3, seed=5)
+    runs = {}
+    for prop in ("compact", "full"):
+        info = export_instance(
+            tmp_path / prop, model, input_set, spec, dtype=dtype, property_form=prop
+        )
+        runs[prop] = _session(info["onnx"], dtype)
+    lam = torch.cat([torch.zeros(1, 3), torch.eye(3), input_set.sample(20, seed=6)]).double()
+    for u in box_of_lambda(lam):
+        feed = {"u": u[None].to(dtype).numpy()}
+        full, compact = (runs[p].run(["y"], feed)[0] for p in ("full", "compact"))
+        want = worst_margins(spec, full)
+        tol = 8 * torch.finfo(dtype).eps * np.abs(full).max()
+        np.testing.assert_allclose(compact, want, rtol=0, atol=tol)
+        assert np.array_equal(compact <= 0, want <= 0)
+
+
+class DenseWorstMargins(nn.Module):
+    """``net`` then :class:`WorstMargins`'s very tree (its index levels) as operators
+    :func:`kpstudy.verify.verify` traces: ``Linear`` layers of 0/±1 matrices, ``relu``,
+    ``+`` and ``cat``. Output ``(B, 2G)``: each group's least margin ``z_g``, then a
+    constant 0, so that ``ArgmaxSpec([2] * G, [0] * G)`` states "every ``z_g > 0``"."""
+
+    def __init__(self, net, spec):
+        super().__init__()
+        tree = WorstMargins(spec)
+        self.net = net
+        self.margins = self.select(spec.n_outputs, spec.row_pos, spec.row_neg)
+        self.levels = nn.ModuleList()
+        width = spec.n_rows
+        for a, b, carried in tree.levels:
+            negate = nn.Linear(len(a), len(a), bias=False)
+            nn.init.constant_(negate.weight, 0.0)
+            negate.weight.data.fill_diagonal_(-1.0)
+            level = [self.select(width, a), self.select(width, a, b), negate]
+            if carried is not None:
+                level.append(self.select(width, carried))
+            self.levels.append(nn.ModuleList(level))
+            width = len(a) + (0 if carried is None else len(carried))
+        order = torch.arange(width) if tree.order is None else tree.order
+        self.out = self.select(width, order)
+        self.pad = nn.Linear(width, 2 * width, bias=False)  # z_g → (z_g, 0)
+        nn.init.constant_(self.pad.weight, 0.0)
+        self.pad.weight.data[::2] = torch.eye(width)
+        self.spec = ArgmaxSpec([2] * width, [0] * width)
+        self.eval()
+
+    @staticmethod
+    def select(width, plus, minus=None):
+        """``v ↦ v[plus] − v[minus]`` (or ``v[plus]``) as a ``Linear`` on ``(B, width)``."""
+        layer = nn.Linear(width, len(plus))
+        nn.init.constant_(layer.weight, 0.0)
+        nn.init.constant_(layer.bias, 0.0)
+        rows = torch.arange(len(plus))
+        layer.weight.data[rows, plus] = 1.0
+        if minus is not None:
+            layer.weight.data[rows, minus] -= 1.0
+        return layer
+
+    def forward(self, x):
+        v = self.margins(self.net(x))
+        for first, diff, negate, *keep in self.levels:
+            low = first(v) + negate(torch.relu(diff(v)))
+            v = torch.cat([low, keep[0](v)], 1) if keep else low
+        return self.pad(self.out(v))
+
+
+class Lifted(nn.Module):
+    """``net`` with each group's target raised so that ``x0`` has least margin ``margin``
+    in every group (a ``Linear`` of identity weights and that bias): small hulls around
+    ``x0`` hold, wide ones do not."""
+
+    def __init__(self, net, spec, x0, margin=0.05):
+        super().__init__()
+        self.net = net
+        self.lift = nn.Linear(spec.n_outputs, spec.n_outputs)
+        with torch.no_grad():
+            self.lift.weight.copy_(torch.eye(spec.n_outputs))
+            self.lift.bias.zero_()
+            least = spec.group_min(spec.margins(self(x0)))[0]
+            for g in spec.active_groups:
+                self.lift.bias[spec.offsets[g] + spec.targets[g]] = margin - least[g]
+        self.eval()
+
+    def forward(self, x):
+        return self.lift(self.net(x))
+
+
+def test_compact_and_full_give_the_same_verdict(tmp_path):
+    """kpstudy's ``verify`` decides every instance the same on the proxy's margin rows
+    (the full form) and on the compact form's tree (:class:`DenseWorstMargins`), both
+    verdicts among them; at a counterexample both exported graphs (float64) state a
+    violation, at the points of a hull that holds neither does."""
+    verdicts = []
+    for i, spread in enumerate([0.01, 0.03, 0.3, 1.0, 0.02, 0.5]):
+        net = TwoKeypointNet(seed=i)
+        g = torch.Generator().manual_seed(i)
+        x0 = torch.rand(1, *S, generator=g)
+        model = Lifted(net, net.spec(), x0)
+        spec = net.spec()
+        input_set = ConvexHull(torch.cat([x0, x0 + spread * torch.randn(2, *S, generator=g)]))
+        full = verify(model, input_set, spec, timeout=600, max_nodes=2000)
+        dense = DenseWorstMargins(model, spec)
+        compact = verify(dense, input_set, dense.spec, timeout=600, max_nodes=2000)
+        assert full.status == compact.status != "unknown", (i, full.status, compact.status)
+        verdicts.append(full.status)
+        runs = {}
+        for prop in ("compact", "full"):
+            info = export_instance(
+                tmp_path / f"{i}{prop}",
+                model,
+                input_set,
+                spec,
+                dtype=torch.float64,
+                property_form=prop,
+            )
+            runs[prop] = _session(info["onnx"], torch.float64)
+        if full.status == "violated":
+            lam = full.counterexample.point[None].double()
+        else:
+            lam = torch.cat([torch.eye(2), input_set.sample(30, seed=i)]).double()
+        for u in box_of_lambda(lam):
+            feed = {"u": u[None].numpy()}
+            y, z = (runs[p].run(["y"], feed)[0][0] for p in ("full", "compact"))
+            violated = (spec.margins(torch.from_numpy(y[None])) <= 1e-12).any().item()
+            assert violated == (z.min() <= 1e-12) == (full.status == "violated")
+    assert set(verdicts) == {"holds", "violated"}

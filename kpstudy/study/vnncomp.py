@@ -5,8 +5,10 @@
 verifier that reads ONNX + VNN-LIB runs exactly what :func:`kpstudy.certify.certify`
 verifies::
 
-    DIR/onnx/NAME.onnx        the proxy with the hull folded in (kpstudy.verify.export)
+    DIR/onnx/NAME.onnx        the proxy with the hull folded in and, by default, each
+                              keypoint's worst margin computed in it (kpstudy.verify.export)
     DIR/vnnlib/NAME.vnnlib    the input set and the violation of "each keypoint's cell wins"
+                              (one disjunct per keypoint by default)
     DIR/instances.csv         onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT (no header)
     DIR/README.md             how the files were made and what each instance means
 
@@ -91,6 +93,7 @@ def export_benchmark(
     input_form: str = "box",
     vnnlib_version: str = "1.0",
     dtype: str = "float32",
+    property_form: str = "compact",
     command: str | None = None,
     progress: bool = False,
 ) -> dict:
@@ -114,6 +117,10 @@ def export_benchmark(
         ``'1.0'`` / ``'2.0'``).
     dtype : {'float32', 'float64'}
         Precision of the ONNX graphs.
+    property_form : {'compact', 'full'}
+        Of :func:`~kpstudy.verify.export.export_instance`: each keypoint's worst margin in
+        the graph and one disjunct per keypoint (default), or the proxy's cells as the
+        output and one disjunct per competing cell.
     command : str, optional
         The command line to record in README.md (default: a call of this function).
     progress : bool
@@ -131,8 +138,8 @@ def export_benchmark(
     ------
     ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError
         One line naming the argument (``checkpoint``, ``data``, ``out``, ``timeout``,
-        ``input_form``, ``vnnlib_version``, ``dtype``, ``instances``), before anything is
-        written.
+        ``input_form``, ``vnnlib_version``, ``dtype``, ``property_form``, ``instances``),
+        before anything is written.
     """
     from tqdm.auto import tqdm
 
@@ -140,7 +147,12 @@ def export_benchmark(
     from kpstudy.certify.allocation_method import build_instance
     from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
     from kpstudy.study.campaign import Settings, _context, instance_vertices, provenance
-    from kpstudy.verify.export import INPUT_FORMS, VNNLIB_VERSIONS, export_instance
+    from kpstudy.verify.export import (
+        INPUT_FORMS,
+        PROPERTY_FORMS,
+        VNNLIB_VERSIONS,
+        export_instance,
+    )
 
     checkpoint, data_dir = Path(checkpoint), Path(data_dir)
     if not checkpoint.is_file():
@@ -159,6 +171,10 @@ def export_benchmark(
         )
     if dtype not in DTYPES:
         raise ValueError(f"dtype: expected one of {', '.join(DTYPES)}, got {dtype!r}")
+    if property_form not in PROPERTY_FORMS:
+        raise ValueError(
+            f"property_form: expected one of {', '.join(PROPERTY_FORMS)}, got {property_form!r}"
+        )
     instances = list(dict.fromkeys(instances))
     if not instances:
         raise ValueError("instances: the grid is empty; nothing to export")
@@ -174,6 +190,7 @@ def export_benchmark(
         "input_form": input_form,
         "vnnlib_version": vnnlib_version,
         "dtype": dtype,
+        "property_form": property_form,
     }
     written, skipped, sizes = [], [], {}
     staged = None
@@ -213,6 +230,7 @@ def export_benchmark(
                     input_form=input_form,
                     dtype=DTYPES[dtype],
                     vnnlib_version=vnnlib_version,
+                    property_form=property_form,
                 )
                 text = (work / "spec.vnnlib").read_text()
                 write_text_atomic(vnnlib_path, text.replace("model.onnx", f"onnx/{name}.onnx"))
@@ -248,6 +266,7 @@ def export_benchmark(
                 input_form,
                 vnnlib_version,
                 dtype,
+                property_form,
             )
             write_text_atomic(staging / "README.md", readme)
     except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
@@ -271,6 +290,7 @@ def _readme(
     input_form,
     vnnlib_version,
     dtype,
+    property_form,
 ) -> str:
     versions = ", ".join(f"{p} {importlib.metadata.version(p)}" for p in ("torch", "onnx", "numpy"))
     form = {
@@ -280,6 +300,17 @@ def _readme(
         "simplex": "`lam` = λ with λ ≥ 0 and the linear input constraint Σ λ ≤ 1 (only "
         "verifiers that accept linear input constraints read it)",
     }[input_form]
+    property_text = {
+        "compact": "The network ends in each verified keypoint's worst margin, the least "
+        "`y_t − y_j` over its other cells j (t: its target cell; the minimum a ReLU tree, "
+        "`min(a, b) = a − relu(a − b)`, of ONNX `Gather`, `Sub`, `Relu`, `Concat`): "
+        "one output `Y_i` per verified keypoint, in keypoint order (the VNN-LIB header "
+        "lists them), and one disjunct `Y_i ≤ 0` per output, the same verdict as one "
+        "disjunct `Y_j ≥ Y_t` per competing cell (property form `full`) in a file of a few "
+        "kilobytes.",
+        "full": "The network's output `y` is the cells of all keypoints, and the violation "
+        "is one disjunct `Y_j ≥ Y_t` per other cell j of a keypoint with target t.",
+    }[property_form]
     lines = [
         "# kpstudy keypoint-proxy verification benchmark",
         "",
@@ -293,8 +324,9 @@ def _readme(
         f"- checkpoint `{checkpoint.name}`, SHA-256 `{origin['checkpoint']}`",
         f"- dataset `{data_dir.name}`, SHA-256 `{origin['dataset']}` (over its "
         "`annotations.json` and the perturbation sets' `meta.json`)",
-        f"- {len(sizes)} instances, input form `{input_form}`, ONNX {dtype}, VNN-LIB "
-        f"{vnnlib_version}, timeout {_num(timeout)} s each",
+        f"- {len(sizes)} instances, input form `{input_form}`, property form "
+        f"`{property_form}`, ONNX {dtype}, VNN-LIB {vnnlib_version}, timeout "
+        f"{_num(timeout)} s each",
         "",
         "Layout as in the VNN-COMP benchmarks: `onnx/NAME.onnx`, `vnnlib/NAME.vnnlib`, and "
         "`instances.csv` with one row `onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT` per "
@@ -313,14 +345,16 @@ def _readme(
         "keypoint an average pooling of its heatmap channel into cells of side 2δv + 1 "
         "centred on the rounded ground-truth keypoint (the tolerances δv of the allocation "
         "`κ |M| δv ≤ α ε` at the seed's nominal pose, ε = α·[10°, 10°, 10°, 4, 4, 20 m]), "
-        "the cells of all keypoints concatenated into the output `y`.",
+        "the cells of all keypoints concatenated. Its batch norms are folded into the "
+        "convolutions, every value has a static shape (batch 1) and every node input a "
+        "name, and the graph passes `onnx.checker`'s full check: ONNX importers such as "
+        "onnx2pytorch (α,β-CROWN's, NeuralSAT's) read it.",
         "",
         "The property is that every keypoint's target cell (the one holding its ground "
         "truth) has the largest pooled value of its keypoint's cells, on every image of the "
-        "hull. The VNN-LIB file states its *violation*, one disjunct `Y_j ≥ Y_t` per other "
-        "cell j of a keypoint with target t: `unsat` means the property holds (kpstudy's "
-        "`holds`), a satisfying input is a counterexample (`violated`). Ties count as "
-        "violations.",
+        "hull. The VNN-LIB file states its *violation*: `unsat` means the property holds "
+        "(kpstudy's `holds`), a satisfying input is a counterexample (`violated`). Ties "
+        "count as violations. " + property_text,
         "",
         "Names: `KIND_IMAGEID_HULL_aALPHA_kKAPPA`, HULL `mM_ov` / `mM_nov` (m perturbed "
         "images overlapping the airplane or not) or `lLEVEL` (brightness b, contrast c).",

@@ -1,7 +1,7 @@
 """Export a verification instance as ONNX + VNN-LIB, the VNN-COMP exchange format.
 
-:func:`export_instance` writes two files so that other verifiers (alpha-beta-CROWN, NNV,
-PyRAT, Marabou, …) can run the very instance this package checks:
+:func:`export_instance` writes two files so that other verifiers (alpha-beta-CROWN,
+NeuralSAT, NNV, PyRAT, Marabou, …) can run the very instance this package checks:
 
 ``model.onnx``
     For a :class:`~kpstudy.verify.sets.ConvexHull`, the network with the hull folded in
@@ -18,15 +18,25 @@ PyRAT, Marabou, …) can run the very instance this package checks:
 
     A :class:`~kpstudy.verify.sets.Parallelotope` takes ``lam`` in the cube ``[0, 1]^n``;
     a :class:`~kpstudy.verify.sets.Box` the plain network on ``x`` of shape ``(1, *S)``.
-    Output ``y`` of shape ``(1, m)``, the model's output flattened. float32 by default,
-    float64 with ``dtype=torch.float64`` (the model and the vertices converted).
+    Output ``y``: with ``property_form='compact'`` (default) shape ``(1, G)``, one worst
+    margin per group with margin rows (:class:`WorstMargins`); with ``'full'`` shape
+    ``(1, m)``, the model's output flattened. float32 by default, float64 with
+    ``dtype=torch.float64`` (the model and the vertices converted).
+
+    The graph is one that ONNX importers take (onnx2pytorch, which alpha-beta-CROWN and
+    NeuralSAT use, among them): batch norms folded into the convolutions before them (or
+    a per-channel ``Mul``/``Add`` where none is), so no ``BatchNormalization`` node;
+    static shapes on every value, batch 1 (no symbolic dimension); every node input
+    named (the pooling's ``Pad`` has its zero as an input); constants folded; it passes
+    ``onnx.checker.check_model(full_check=True)`` and strict shape inference.
 ``spec.vnnlib``
     The input set and the *violation* of the :class:`~kpstudy.verify.spec.ArgmaxSpec`
-    (VNN-COMP asks for the negation of the property: ``unsat`` means verified), one
-    clause ``Y_j ≥ Y_t`` per margin row in a disjunction. ``vnnlib_version='1.0'``: the
-    form of the VNN-COMPs (``declare-const X_i Real``, inputs flattened in C order);
-    ``'2.0'``: the VNN-LIB 2.0 standard (``declare-network`` with typed, shaped tensors
-    ``X`` and ``Y``; numbers in positional notation, as its grammar asks).
+    (VNN-COMP asks for the negation of the property: ``unsat`` means verified), a
+    disjunction of one-constraint clauses: ``Y_g ≤ 0`` per group (compact form), or
+    ``Y_j ≥ Y_t`` per margin row (full form). ``vnnlib_version='1.0'``: the form of the
+    VNN-COMPs (``declare-const X_i Real``, inputs flattened in C order); ``'2.0'``: the
+    VNN-LIB 2.0 standard (``declare-network`` with typed, shaped tensors ``X`` and
+    ``Y``; numbers in positional notation, as its grammar asks).
 
 :func:`read_vnnlib_polytope` reads back exactly the VNN-LIB 1.0 subset written here;
 :func:`point_of_input` maps an assignment of the ONNX input (a verifier's
@@ -47,6 +57,9 @@ from onnx import numpy_helper
 from onnx.reference import ReferenceEvaluator
 from torch import nn
 from torch.nn import functional as F
+from torch.nn.modules.batchnorm import _BatchNorm
+from torch.nn.modules.conv import _ConvNd, _ConvTransposeNd
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from kpstudy.io import atomic_path
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
@@ -55,12 +68,73 @@ from kpstudy.verify.spec import ArgmaxSpec
 
 INPUT_FORMS = ("box", "simplex")
 VNNLIB_VERSIONS = ("1.0", "2.0")
+PROPERTY_FORMS = ("compact", "full")
 DTYPES = {torch.float32: "float32", torch.float64: "float64"}
+
+
+class WorstMargins(nn.Module):
+    """``y (B, m) ↦ z (B, G)``: per group with margin rows, its worst margin
+    ``z_g = min_{j ≠ t_g} (y[t_g] − y[j])`` (``t_g``: the target, ``j``: the group's other
+    rows), for the groups of ``spec.row_group`` in order (:attr:`groups`).
+
+    The margin rows are :meth:`~kpstudy.verify.spec.ArgmaxSpec.margins` (the same
+    floating-point numbers), their minimum a ReLU tree, ``min(a, b) = a − relu(a − b)``:
+    each level pairs the running minima of a group, neighbours in the group's row order
+    (a group of odd count carries its last one to the next level unchanged). The ONNX
+    graph is ``Gather`` (constant indices), ``Sub``, ``Relu`` and ``Concat``, with
+    ``⌈log2(max_g (s_g − 1))⌉`` levels for groups of ``s_g`` rows.
+
+    Ties and rounding: ``z_g ≤ 0`` exactly when a margin row of ``g`` is ``≤ 0`` in real
+    arithmetic. In floating point a row ``≤ 0`` still gives ``z_g ≤ 0`` (rounding is
+    monotone: ``a − (a − b) ≤ 0`` for ``b ≤ 0 < a``), so a tie is a violation as in
+    :func:`kpstudy.verify.verify`; the tree can only add a violation, ``z_g = 0`` where
+    a positive row is below half a unit in the last place of its partner.
+
+    Attributes
+    ----------
+    groups : list of int
+        The group of each output column.
+    """
+
+    def __init__(self, spec: ArgmaxSpec) -> None:
+        super().__init__()
+        rows = spec.row_group.tolist()
+        self.groups = list(dict.fromkeys(rows))
+        self.pos, self.neg = spec.row_pos.clone(), spec.row_neg.clone()
+        members, start = [], 0  # per group: positions of its running minima in v
+        for g in self.groups:
+            count = rows.count(g)
+            members.append(list(range(start, start + count)))
+            start += count
+        # (a, b, carried or None) indices into v: v ← [a − relu(a − b), v[carried]]
+        self.levels: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []
+        while any(len(p) > 1 for p in members):
+            pairs = [(p[i], p[i + 1]) for p in members for i in range(0, len(p) - 1, 2)]
+            carried = [p[-1] for p in members if len(p) % 2]
+            new, pair, carry = [], 0, len(pairs)  # the next v: pairs' minima, then carried
+            for p in members:
+                half, odd = len(p) // 2, len(p) % 2
+                new.append([*range(pair, pair + half), *[carry] * odd])
+                pair, carry = pair + half, carry + odd
+            members = new
+            first, second = (torch.tensor(x) for x in zip(*pairs))
+            self.levels.append((first, second, torch.tensor(carried) if carried else None))
+        order = [p[0] for p in members]  # each group's minimum in v
+        self.order = None if order == sorted(order) else torch.tensor(order)
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        v = y.index_select(1, self.pos) - y.index_select(1, self.neg)
+        for a, b, carried in self.levels:
+            first = v.index_select(1, a)
+            low = first - torch.relu(first - v.index_select(1, b))
+            v = low if carried is None else torch.cat([low, v.index_select(1, carried)], 1)
+        return v if self.order is None else v.index_select(1, self.order)
 
 
 class _Instance(nn.Module):
     """``model(w(x) @ V)`` flattened to ``(B, m)`` for a hull (``w``: the input's
-    barycentric weights); ``model(x)`` for a box."""
+    barycentric weights); ``model(x)`` for a box; then, once :attr:`margins` is set to a
+    :class:`WorstMargins`, those ``(B, G)``."""
 
     def __init__(self, model: nn.Module, input_set, input_form: str, dtype) -> None:
         super().__init__()
@@ -74,12 +148,14 @@ class _Instance(nn.Module):
             else:
                 self.weights = SimplexWeights(n, dtype)
             self.register_buffer("vertices", input_set.vertices.reshape(n + 1, -1).to(dtype))
+        self.margins: WorstMargins | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.hull:  # w @ V = (w − e_0) @ V + X0 as one Gemm with a bias
             x = F.linear(self.weights.linear(x), self.vertices.T, self.vertices[0])
             x = x.reshape(-1, *self.shape)
-        return self.model(x).flatten(1)
+        y = self.model(x).flatten(1)
+        return y if self.margins is None else self.margins(y)
 
 
 def _form(input_set, input_form: str) -> str:
@@ -101,9 +177,33 @@ def export_instance(
     input_form: str = "box",
     dtype=torch.float32,
     vnnlib_version: str = "1.0",
+    property_form: str = "compact",
     opset: int = 17,
 ):
     """Write ``model.onnx`` and ``spec.vnnlib`` for one verification instance.
+
+    The property has two forms; both state the same violation (the same verdict):
+
+    * ``'compact'`` (default): the graph ends in :class:`WorstMargins`, output ``y`` of
+      shape ``(1, G)``: per group with margin rows (a verified keypoint), the least of
+      its margins ``y_t − y_j``, the minimum a ReLU tree in the graph. The VNN-LIB file
+      has one disjunct ``Y_g ≤ 0`` per group, ``G ≤`` the number of keypoints (23 for
+      the airliner): a few kilobytes. This is the form for VNN-COMP tools: their VNN-LIB
+      readers cost time and memory per disjunct (alpha-beta-CROWN keeps an input copy
+      per clause, NeuralSAT's parser took 32 s and 14 GB for the ~2·10^4 clauses of the
+      full form), and the tree is ``Gather``, ``Sub``, ``Relu`` and ``Concat``, which
+      their ONNX importers take and their branch and bound can split like any other
+      ReLU. One instance per keypoint would still leave a clause per cell (~10^3) in
+      each, and 23 files per hull.
+    * ``'full'``: output ``y`` of shape ``(1, m)``, the model's flattened output, and one
+      disjunct ``Y_j ≥ Y_t`` per margin row: every row a linear function of ``y``, no
+      tree to relax, for verifiers that cope with ~10^4 disjuncts (and Marabou 2.0.0,
+      whose ONNX reader has no ``Gather``).
+
+    Ties are violations in both, as in :func:`kpstudy.verify.verify` (a margin of
+    exactly 0 is not verified): ``Y_g = 0`` is a violation as ``Y_j = Y_t`` is. In real
+    arithmetic ``Y_g ≤ 0`` exactly when some row of group ``g`` has ``Y_j ≥ Y_t``; in
+    floating point a row ``≤ 0`` still gives ``Y_g ≤ 0`` (see :class:`WorstMargins`).
 
     Parameters
     ----------
@@ -126,22 +226,26 @@ def export_instance(
         Precision of the ONNX graph (weights, vertices, input and output).
     vnnlib_version : {'1.0', '2.0'}
         VNN-LIB dialect: the VNN-COMP form (1.0) or the VNN-LIB 2.0 standard.
+    property_form : {'compact', 'full'}
+        The property's form (above).
     opset : int
         ONNX opset version.
 
     Returns
     -------
     dict
-        ``onnx``, ``vnnlib`` (Paths), ``n_inputs``, ``n_outputs``, ``n_disjuncts`` (the
-        margin rows, one clause each), ``input_name`` (``'u'``, ``'lam'`` or ``'x'``),
-        ``input_form`` (``'box'``, ``'simplex'`` or ``'pixels'``), ``dtype``
-        (``'float32'`` / ``'float64'``) and ``vnnlib_version``.
+        ``onnx``, ``vnnlib`` (Paths), ``n_inputs``, ``n_outputs`` (of the ONNX graph:
+        ``G`` compact, ``m`` full), ``n_disjuncts`` (``G`` or the margin rows, one clause
+        each), ``input_name`` (``'u'``, ``'lam'`` or ``'x'``), ``input_form`` (``'box'``,
+        ``'simplex'`` or ``'pixels'``), ``dtype`` (``'float32'`` / ``'float64'``),
+        ``vnnlib_version`` and ``property_form``.
 
     Raises
     ------
     ValueError
         If ``directory`` is an existing file, ``input_set`` is of another type,
-        ``input_form``, ``dtype`` or ``vnnlib_version`` is not one of the above, ``spec``
+        ``input_form``, ``dtype``, ``vnnlib_version`` or ``property_form`` is not one of
+        the above, ``spec``
         does not fit the model's output or has no verified group, or ``model`` fails to
         run or to export. Nothing is written then (files go to temporary names first).
     """
@@ -167,6 +271,8 @@ def export_instance(
         raise ValueError(
             f"vnnlib_version: expected one of {VNNLIB_VERSIONS}, got {vnnlib_version!r}"
         )
+    if property_form not in PROPERTY_FORMS:
+        raise ValueError(f"property_form: expected one of {PROPERTY_FORMS}, got {property_form!r}")
     form = _form(input_set, input_form)
     wrapper = _Instance(model, input_set, input_form, dtype)
     if form == "pixels":
@@ -180,23 +286,27 @@ def export_instance(
     except Exception as exc:
         raise ValueError(f"model: failed on the input set's first point: {exc}") from exc
     spec.check_output(n_out)
-    text = _vnnlib_text(input_set, spec, name, form, DTYPES[dtype], vnnlib_version)
+    if property_form == "compact":
+        wrapper.margins = WorstMargins(spec)
+    text = _vnnlib_text(input_set, spec, name, form, DTYPES[dtype], vnnlib_version, wrapper.margins)
 
     directory.mkdir(parents=True, exist_ok=True)
     onnx_path, vnnlib_path = directory / "model.onnx", directory / "spec.vnnlib"
     with atomic_path(onnx_path) as tmp_onnx, atomic_path(vnnlib_path) as tmp_vnnlib:
         _export_onnx(wrapper, example, name, tmp_onnx, opset)
         Path(tmp_vnnlib).write_text(text)
+    n_clauses = spec.n_rows if wrapper.margins is None else len(wrapper.margins.groups)
     return {
         "onnx": onnx_path,
         "vnnlib": vnnlib_path,
         "n_inputs": input_set.n,
-        "n_outputs": spec.n_outputs,
-        "n_disjuncts": spec.n_rows,
+        "n_outputs": spec.n_outputs if wrapper.margins is None else n_clauses,
+        "n_disjuncts": n_clauses,
         "input_name": name,
         "input_form": form,
         "dtype": DTYPES[dtype],
         "vnnlib_version": vnnlib_version,
+        "property_form": property_form,
     }
 
 
@@ -221,8 +331,10 @@ def point_of_input(input_set, x, input_form: str = "box") -> torch.Tensor:
 def export_onnx(model: nn.Module, example: torch.Tensor, path, *, opset=17) -> Path:
     """Write ``model`` (a float32 eval-mode copy) as ONNX with input ``x`` and output ``y``.
 
-    ``example`` fixes the input shape, e.g. ``torch.zeros(1, 3, 64, 64)`` for the CNN
-    backbone or its proxy. The file appears only when the export succeeded.
+    ``example`` fixes the input shape, batch included (every value's shape is static),
+    e.g. ``torch.zeros(1, 3, 64, 64)`` for the CNN backbone or its proxy; batch norms are
+    folded as for :func:`export_instance`. The file appears only when the export
+    succeeded.
 
     Examples
     --------
@@ -246,7 +358,8 @@ def read_vnnlib_polytope(path) -> dict:
         ``lower``, ``upper`` : ndarray, shape (n,), float64 — input bounds (``∓inf`` where
         absent); ``constraints`` : list of ``(coeffs (n,), rhs)`` meaning
         ``coeffs · X ≤ rhs``; ``disjuncts`` : list of ``(neg, pos)`` meaning
-        ``Y_neg ≥ Y_pos`` (the violation is any one of them); ``n_inputs``, ``n_outputs``.
+        ``Y_neg ≥ Y_pos``, ``neg = None`` standing for the constant 0 (the compact form's
+        ``Y_pos ≤ 0``; the violation is any one of them); ``n_inputs``, ``n_outputs``.
 
     Raises
     ------
@@ -257,6 +370,7 @@ def read_vnnlib_polytope(path) -> dict:
     bound = re.compile(r"\(assert \((<=|>=) X_(\d+) (\S+)\)\)")
     linear = re.compile(r"\(assert \(<= \(\+((?: X_\d+)+)\) (\S+)\)\)")
     clause = re.compile(r"\(and \(>= Y_(\d+) Y_(\d+)\)\)")
+    compact = re.compile(r"\(and \(<= Y_(\d+) 0\.0\)\)")
     count = {"X": 0, "Y": 0}
     bounds, sums, disjuncts = [], [], []
     for i, line in enumerate(Path(path).read_text().splitlines(), 1):
@@ -271,6 +385,8 @@ def read_vnnlib_polytope(path) -> dict:
             sums.append(([int(x) for x in re.findall(r"X_(\d+)", m[1])], float(m[2])))
         elif m := clause.fullmatch(line):
             disjuncts.append((int(m[1]), int(m[2])))
+        elif m := compact.fullmatch(line):
+            disjuncts.append((None, int(m[1])))
         else:
             raise ValueError(f"path: line {i} is outside the exported VNN-LIB subset: {line!r}")
     n = count["X"]
@@ -299,8 +415,13 @@ def _number(x: float) -> str:
     return np.format_float_positional(float(x), unique=True, trim="0")
 
 
-def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, version) -> str:
-    n, m = input_set.n, spec.n_outputs
+def _vnnlib_text(
+    input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, version, margins
+) -> str:
+    """The VNN-LIB text; ``margins``: the graph's :class:`WorstMargins` (compact form) or
+    None (full form)."""
+    n = input_set.n
+    m = spec.n_outputs if margins is None else len(margins.groups)
     kind = type(input_set).__name__
     if form == "pixels":
         shape = (1, *input_set.shape)
@@ -324,11 +445,24 @@ def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, 
     header = [
         f"; kpstudy verification instance: {kind} input set, n = {n}, input form {form}",
         f"; inputs: model.onnx '{name}' {shape} {dtype}, {meaning}",
-        f"; outputs: model.onnx 'y' (1, {m}), {spec.n_groups} groups "
-        f"{spec.group_sizes}, targets {spec.targets}",
-        f"; {spec.n_rows} margin rows; the assertions state a violation (unsat = verified)",
+        f"; model outputs: {spec.n_outputs} in {spec.n_groups} groups {spec.group_sizes}, "
+        f"targets {spec.targets}",
     ]
-    rows = list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+    if margins is None:
+        header += [
+            f"; outputs: model.onnx 'y' (1, {m}), the model's outputs",
+            f"; {spec.n_rows} margin rows, one disjunct Y_j >= Y_t each; the assertions "
+            "state a violation (unsat = verified), a tie included",
+        ]
+        rows = list(zip(spec.row_neg.tolist(), spec.row_pos.tolist()))
+    else:
+        header += [
+            f"; outputs: model.onnx 'y' (1, {m}), Y_i = the worst margin of the i-th of "
+            f"groups {margins.groups}: min of y_t - y_j over its model outputs j other "
+            "than its target t",
+            "; one disjunct Y_i <= 0 per group; the assertions state a violation "
+            "(unsat = verified), a tie (Y_i = 0) included",
+        ]
     simplex = form == "simplex" and n > 1  # Σλ ≤ 1; for n = 1 it is the bound X_0 ≤ 1 already
     if version == "1.0":
         x = [f"X_{i}" for i in range(len(lower))]
@@ -340,7 +474,10 @@ def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, 
             *(f"(declare-const {v} Real)" for v in y),
             "",
         ]
-        clauses = [f"  (and (>= {y[j]} {y[t]}))" for j, t in rows]
+        if margins is None:
+            clauses = [f"  (and (>= {y[j]} {y[t]}))" for j, t in rows]
+        else:
+            clauses = [f"  (and (<= {v} 0.0))" for v in y]
     else:
         x = [f"X[{', '.join(map(str, (0, *idx)))}]" for idx in np.ndindex(*shape[1:])]
         y = [f"Y[0, {j}]" for j in range(m)]
@@ -354,7 +491,10 @@ def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, 
             ")",
             "",
         ]
-        clauses = [f"  (>= {y[j]} {y[t]})" for j, t in rows]
+        if margins is None:
+            clauses = [f"  (>= {y[j]} {y[t]})" for j, t in rows]
+        else:
+            clauses = [f"  (<= {v} 0.0)" for v in y]
     for v, lo, hi in zip(x, lower, upper):
         lines += [f"(assert (>= {v} {_number(lo)}))", f"(assert (<= {v} {_number(hi)}))"]
     if simplex:
@@ -364,8 +504,11 @@ def _vnnlib_text(input_set, spec: ArgmaxSpec, name: str, form: str, dtype: str, 
 
 
 def _export_onnx(wrapper: nn.Module, example, name: str, path: str, opset: int) -> None:
-    """The TorchScript exporter first (needs no onnxscript), then the torch.export one;
-    constants folded (see :func:`_fold_constants`)."""
+    """Export ``wrapper`` for the input ``example`` (its shape fixed, batch included): its
+    batch norms folded in place (:func:`_fold_batch_norms`; callers pass their own copy),
+    the TorchScript exporter first (needs no onnxscript), then the torch.export one; then
+    :func:`_finish_graph`."""
+    wrapper = _fold_batch_norms(wrapper)
     errors = []
     for dynamo in (False, True):
         try:
@@ -382,19 +525,73 @@ def _export_onnx(wrapper: nn.Module, example, name: str, path: str, opset: int) 
                     output_names=["y"],
                     opset_version=opset,
                 )
-            _fold_constants(path)
+            _finish_graph(path)
             return
         except Exception as exc:
             errors.append(f"{'dynamo' if dynamo else 'torchscript'} exporter: {exc}")
     raise ValueError("model: failed to export to ONNX (" + "; ".join(errors) + ")")
 
 
-def _fold_constants(path: str) -> None:
-    """Replace the nodes that depend only on constants by initializers, in place.
+class _ChannelAffine(nn.Module):
+    """An eval-mode batch norm as ``x * scale + shift`` per channel (dim 1 of ``(B, C, …)``):
+    ``Mul`` and ``Add`` in ONNX."""
 
-    The TorchScript exporter leaves ``F.pad``'s pads as a Constant/Slice/Concat/Transpose
-    chain (its reversing Slice stops torch's own folding); verifiers' ONNX importers want
-    a constant ``Pad`` input.
+    def __init__(self, bn: _BatchNorm) -> None:
+        super().__init__()
+        scale = torch.rsqrt(bn.running_var + bn.eps)
+        if bn.weight is not None:
+            scale = scale * bn.weight.detach()
+        shift = -bn.running_mean * scale
+        if bn.bias is not None:
+            shift = shift + bn.bias.detach()
+        self.register_buffer("scale", scale)
+        self.register_buffer("shift", shift)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = (-1,) + (1,) * (x.ndim - 2)
+        return x * self.scale.reshape(shape) + self.shift.reshape(shape)
+
+
+def _fold_batch_norms(module: nn.Module) -> nn.Module:
+    """``module`` without batch norms (changed in place; returned, as a lone batch norm is
+    replaced): one that follows a (transposed) convolution in an ``nn.Sequential`` folded
+    into it (:func:`torch.nn.utils.fusion.fuse_conv_bn_eval`), any other a
+    :class:`_ChannelAffine`.
+
+    ONNX's ``BatchNormalization`` has carried ``training_mode`` since opset 14, which
+    onnx2pytorch (alpha-beta-CROWN's and NeuralSAT's importer) refuses; the TorchScript
+    exporter folds a batch norm into a ``Conv`` but not into a ``ConvTranspose``.
+    """
+    for seq in [m for m in module.modules() if isinstance(m, nn.Sequential)]:
+        for i in range(1, len(seq)):
+            conv, bn = seq[i - 1], seq[i]
+            transpose = isinstance(conv, _ConvTransposeNd)
+            # torch folds a transposed convolution's output channels for one group only
+            if (
+                isinstance(conv, _ConvNd)
+                and isinstance(bn, _BatchNorm)
+                and not (transpose and conv.groups > 1)
+            ):
+                seq[i - 1] = fuse_conv_bn_eval(conv, bn, transpose=transpose)
+                seq[i] = nn.Identity()
+    if isinstance(module, _BatchNorm):
+        return _ChannelAffine(module)
+    for name, child in list(module.named_modules()):
+        if isinstance(child, _BatchNorm):
+            parent, _, attr = name.rpartition(".")
+            setattr(module.get_submodule(parent), attr, _ChannelAffine(child))
+    return module
+
+
+def _finish_graph(path: str) -> None:
+    """Fold constants and fix every value's shape in the ONNX file ``path``, in place.
+
+    A node that depends only on constants becomes an initializer: the TorchScript exporter
+    leaves ``F.pad``'s pads as a Constant/Slice/Concat/Transpose chain (its reversing
+    Slice stops torch's own folding), and verifiers' importers want a constant ``Pad``
+    input. Strict shape inference then gives every value and the output their static
+    shapes (the exporter leaves symbolic ones, ``Flatteny_dim_0``, behind that chain),
+    and the full checker must pass.
     """
     model = onnx.load(path)
     graph = model.graph
@@ -415,4 +612,11 @@ def _fold_constants(path: str) -> None:
     graph.initializer.extend(
         numpy_helper.from_array(np.asarray(v), k) for k, v in values.items() if k in used
     )
+    graph.ClearField("value_info")
+    model = onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True)
+    for value in [*model.graph.input, *model.graph.output, *model.graph.value_info]:
+        dims = value.type.tensor_type.shape.dim
+        if not all(d.HasField("dim_value") for d in dims):
+            raise ValueError(f"model: the ONNX value {value.name!r} has no static shape")
+    onnx.checker.check_model(model, full_check=True)
     onnx.save(model, path)

@@ -241,7 +241,7 @@ def cell_pool(x: torch.Tensor, pad, kernel_size, scale: torch.Tensor) -> torch.T
     -------
     Tensor, shape (B, C, n_v, n_h) or (B, n_v, n_h)
     """
-    y = F.avg_pool2d(F.pad(x, pad), kernel_size)
+    y = F.avg_pool2d(F.pad(x, pad, value=0.0), kernel_size)  # value: an explicit ONNX Pad input
     return y * scale.to(y.dtype)
 
 
