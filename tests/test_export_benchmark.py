@@ -119,7 +119,7 @@ def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
 
 def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
     """certify's record comes from build_instance's proxy, hull and spec."""
-    from kpstudy.certify.allocation_method import certify
+    from kpstudy.certify import certify
     from kpstudy.verify import verify
 
     data, checkpoint = study

@@ -394,14 +394,3 @@ def verify_instance(
         record["argmax_outside"] = len(outside) / int(check_samples)
         record["empirical_samples"] = int(check_samples)
     return record
-
-
-def __getattr__(name: str):
-    """``certify``, which moved to :mod:`kpstudy.certify.hull` (issue 61): only for
-    tests/test_export_benchmark.py, which still imports it from here; once it takes
-    ``from kpstudy.certify import certify``, this goes."""
-    if name == "certify":
-        from kpstudy.certify.hull import certify
-
-        return certify
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
