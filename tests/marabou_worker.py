@@ -1,9 +1,9 @@
 """Marabou in a child process, for tests/test_marabou.py.
 
-Marabou 2.0.0 once ignored ``timeoutInSeconds`` on an exported instance (docs/findings.md,
-2026-12-02): its solver runs in C++ and cannot be interrupted from Python. So the tests
-solve in a spawned child that :class:`MarabouProcess` kills when it overruns; this module
-imports nothing but maraboupy in the child.
+Marabou 2.0.0 once ignored ``timeoutInSeconds`` on an exported instance: its solver runs
+in C++ and cannot be interrupted from Python. So the tests solve in a spawned child that
+:class:`MarabouProcess` kills when it overruns; this module imports nothing but maraboupy
+in the child.
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ def test_layers_export_as_matmul_relu_add_only(tmp_path, cls):
 @pytest.mark.parametrize("n", [2, 3, 4])
 def test_spacings_read_a_relu(tmp_path, n):
     """The sorted u passes a Relu before the spacings' MatMul: fed by the sort's last Add
-    (two sources), Marabou 2.0.0 counted the next bias twice (docs/findings.md)."""
+    (two sources), Marabou 2.0.0 counted the next bias twice."""
     path = tmp_path / "map.onnx"
     _export_onnx(BoxToSimplex(n), torch.zeros(1, n), "u", str(path), 17)
     nodes = onnx.load(path).graph.node

@@ -32,7 +32,8 @@ layer's ReLU instability (:func:`kpstudy.models.certified.relu_instability`) ove
 random brightness or contrast hull around every image of the batch, exact because the
 layer is affine, its gradient rescaled the same way. Those hulls change every pixel a
 little, and each first-layer ReLU they can flip costs the verifier an error symbol that
-later layers widen (docs/findings.md: 7.5× the natural CNN's count on the friendly CNN).
+later layers widen (a brightness step flips 7.5× as many first-layer ReLUs of the friendly
+CNN as of the natural one).
 
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
@@ -87,7 +88,7 @@ class TrainConfig:
     ``schedule``: ``'onecycle'`` (peak ``lr``) or ``'constant'``. ``precision``: the
     forward pass of the natural loss in ``'float32'`` or under ``'bfloat16'`` autocast
     (weights, optimiser and loss stay float32; ~1.8× faster steps on a CPU with AVX-512
-    BF16, docs/findings.md); the bound term always runs in float32. ``init``: the
+    BF16, same test accuracy); the bound term always runs in float32. ``init``: the
     :func:`weights_digest` of the checkpoint whose weights start the run (``None``: a
     random initialisation from ``seed``).
     """
