@@ -6,6 +6,10 @@ says what was expected, e.g. ``"V: expected shape (N, 2) with N >= 4, got (3, 2)
 
 from __future__ import annotations
 
+import contextlib
+import numbers
+from collections.abc import Mapping
+
 import numpy as np
 
 
@@ -39,6 +43,52 @@ def positive(x, name: str, shape: tuple = ()) -> np.ndarray:
     if not np.all(a > 0):
         raise ValueError(f"{name}: expected values > 0, got {a.tolist()}")
     return a
+
+
+def integer(x, name: str, *, minimum=None, maximum=None, optional: bool = False):
+    """``x`` as an int: a Python int, never a bool, in ``[minimum, maximum]`` (either bound
+    may be left out); ``None`` too when ``optional``.
+
+    The message says ``a positive integer`` for ``minimum=1`` alone, else ``an integer >=
+    minimum`` or ``an integer in [minimum, maximum]``, after ``None or`` when ``optional``.
+    """
+    if x is None and optional:
+        return None
+    ok = isinstance(x, int) and not isinstance(x, bool)
+    if not ok or (minimum is not None and x < minimum) or (maximum is not None and x > maximum):
+        if maximum is not None:
+            expected = f"an integer in [{minimum}, {maximum}]"
+        elif minimum == 1:
+            expected = "a positive integer"
+        else:
+            expected = "an integer" + ("" if minimum is None else f" >= {minimum}")
+        raise ValueError(f"{name}: expected {'None or ' * optional}{expected}, got {x!r}")
+    return x
+
+
+def seconds(x, name: str, *, optional: bool = False) -> float | None:
+    """``x`` as float seconds > 0 (a real number, not a bool; ``inf``: no cap); ``None``
+    too when ``optional``."""
+    if x is None and optional:
+        return None
+    if isinstance(x, bool) or not isinstance(x, numbers.Real) or not x > 0:
+        raise ValueError(f"{name}: expected {'None or ' * optional}seconds > 0, got {x!r}")
+    return float(x)
+
+
+@contextlib.contextmanager
+def named(names: Mapping[str, str], prefix: str = ""):
+    """Within the block, a check's ``ValueError`` in the caller's words: ``'key: …'`` is
+    raised again as ``'{prefix}{names[key]}: …'`` (a key missing from ``names`` keeps its
+    name), for an object whose checks name its own fields where the caller's argument
+    has another name."""
+    try:
+        yield
+    except ValueError as exc:
+        key, colon, rest = str(exc).partition(": ")
+        if not colon:
+            raise
+        raise ValueError(f"{prefix}{names.get(key, key)}: {rest}") from exc
 
 
 def intrinsics(K, name: str = "K") -> np.ndarray:

@@ -238,7 +238,7 @@ def test_bad_settings_fail_before_any_work(study, tmp_path):
         (Settings(str(checkpoint), str(data), timeout=0), "timeout"),
         (Settings(str(checkpoint), str(data), nodes=0), "^nodes"),
         (Settings(str(checkpoint), str(data), tolerance_units="px"), "^tolerance_units"),
-        (Settings(str(checkpoint), str(data), pose_bound_nodes=0), "^pose_bound_nodes"),
+        (Settings(str(checkpoint), str(data), pose_bound_nodes=-1), "^pose_bound_nodes"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=-1), "^pose_bound_start"),
         (Settings(str(checkpoint), str(data), pose_bound_start_depth=99), "^pose_bound_start"),
         (Settings(str(checkpoint), str(data), pose_bound_start_splits=-0.5), "^pose_bound_start_s"),

@@ -112,7 +112,7 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     if small["pb_status"] == "violated":  # a two-epoch network: the seed's argmax pose is off
         lam = np.asarray(small["pb_counterexample"])
         assert np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
-    with pytest.raises(ValueError, match="^stride"):
+    with pytest.raises(ValueError, match="^pose_bound_stride"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_stride=2)
     # The regions from zonotope bounds, recorded as such.
     zono = certify(backbone, vertices, seed, alpha=1e4, pose_bound_method="zonotope", **budget)
@@ -124,7 +124,7 @@ def test_certify_records_the_pose_bound_method(study):  # noqa: F811
     if zono["pb_status"] != "holds":
         assert zono["pb_status"] == "unknown" and zono["pb_exact"] == [np.inf] * 6
     assert zono["pb_nodes"] == huge["pb_nodes"] == 1
-    with pytest.raises(ValueError, match="^method"):
+    with pytest.raises(ValueError, match="^pose_bound_method"):
         certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")
 
 

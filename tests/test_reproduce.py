@@ -161,8 +161,8 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         (dict(tolerance_units=()), "tolerance_units: expected a tuple of distinct"),
         (
             dict(global_pose_bound={"cnn": {"pose_bound_method": "crown"}}),
-            "global_pose_bound: expected pose_bound_method 'forward', 'zonotope' or 'ibp', "
-            "got 'crown'",
+            "global_pose_bound: pose_bound_method: expected one of ('ibp', 'forward', "
+            "'zonotope'), got 'crown'",
         ),
         (
             dict(local_pose_bound={"cnn": {"pose_bound_speed": 2}}),
@@ -177,6 +177,15 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
             "allocation: expected {'cnn' or 'cnn_patch_smooth': {setting: value}}",
         ),
         (dict(allocation={"cnn": {"nodes": 0}}), "allocation: nodes: expected None or a positive"),
+        (dict(allocation={"cnn": {"timeout": 0}}), "allocation: timeout: expected seconds > 0"),
+        (
+            dict(local_pose_bound={"cnn": {"pose_bound_nodes": -1}}),
+            "local_pose_bound: pose_bound_nodes: expected None or an integer >= 0, got -1",
+        ),
+        (
+            dict(global_pose_bound={"cnn": {"pose_bound_timeout": 0}}),
+            "global_pose_bound: pose_bound_timeout: expected None or seconds > 0, got 0",
+        ),
         (
             dict(allocation={"cnn": {"method": "crown2"}}),
             "allocation: method: expected 'auto' or one of",

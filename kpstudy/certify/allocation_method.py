@@ -61,15 +61,34 @@ from kpstudy.pose.geometry import inside_tolerance, tolerance
 from kpstudy.pose.pnp import solve_pnp
 from kpstudy.pose.sensitivity import pose_sensitivity
 from kpstudy.verify import ConvexHull, verify
+from kpstudy.verify.bab import check_verify
 from kpstudy.verify.spec import ArgmaxSpec
 
 __all__ = [
+    "AllocationOptions",
     "SeedImage",
     "VerificationInstance",
     "build_instance",
     "target_pose_errors",
     "verify_instance",
 ]
+
+
+@dataclass(frozen=True)
+class AllocationOptions:
+    """The allocation method's verification of an instance, :func:`verify_instance`'s
+    keywords of the same names and defaults (:func:`kpstudy.verify.verify`'s bound method,
+    ``'auto'``: the zonotope; seconds; node budget, ``None``: the seconds alone), checked
+    by :func:`kpstudy.verify.verify`'s rules when made: a ``ValueError`` names the first
+    that is not valid. The one check of these options outside the verifier
+    (:func:`kpstudy.certify.certify_cells`, the study's settings and profiles)."""
+
+    method: str = "auto"
+    timeout: float = 60.0
+    max_nodes: int | None = None
+
+    def __post_init__(self) -> None:
+        check_verify(self.method, self.timeout, self.max_nodes)
 
 
 @dataclass(frozen=True)

@@ -16,20 +16,53 @@ linearisation's safety margin; times in seconds.
 from __future__ import annotations
 
 import time
+from dataclasses import asdict, replace
 
 import numpy as np
 from torch import nn
 
 from kpstudy import _checks
 from kpstudy.certify.allocation_method import (
+    AllocationOptions,
     SeedImage,
     build_instance,
     cached_sensitivity,
     verify_instance,
 )
-from kpstudy.certify.pose_bound_method import HullPoseBound
+from kpstudy.certify.pose_bound_method import HullPoseBound, PoseBoundOptions
 
-__all__ = ["certify", "certify_cells"]
+__all__ = ["POSE_BOUND_KEYWORDS", "certify", "certify_cells", "pose_bound_options"]
+
+#: :func:`certify_cells`' keyword of the pose-bound method (and the
+#: :class:`kpstudy.study.campaign.Settings` field of that name) → its
+#: :class:`~kpstudy.certify.pose_bound_method.PoseBoundOptions` field.
+POSE_BOUND_KEYWORDS = {
+    "pose_bound_method": "method",
+    "pose_bound_timeout": "timeout",
+    "pose_bound_nodes": "max_nodes",
+    "pose_bound_start_depth": "start_depth",
+    "pose_bound_start_splits": "start_splits",
+    "pose_bound_refine_nodes": "refine_nodes",
+    "pose_bound_stride": "stride",
+}
+
+
+def pose_bound_options(prefix: str = "", **chosen) -> PoseBoundOptions | None:
+    """The pose-bound method's options of :data:`POSE_BOUND_KEYWORDS` ``chosen`` (one left
+    out: its default), checked: a ``ValueError`` names the keyword (or the unknown ones),
+    after ``prefix``. ``None`` when ``pose_bound_timeout`` is ``None`` or left out: the
+    method is skipped, and the other keywords are checked all the same."""
+    unknown = sorted(set(chosen) - set(POSE_BOUND_KEYWORDS))
+    if unknown:
+        raise ValueError(
+            f"{prefix}unknown settings {unknown}; expected {sorted(POSE_BOUND_KEYWORDS)}"
+        )
+    options = {POSE_BOUND_KEYWORDS[name]: value for name, value in chosen.items()}
+    timeout = options.pop("timeout", None)
+    with _checks.named({v: k for k, v in POSE_BOUND_KEYWORDS.items()}, prefix):
+        _checks.seconds(timeout, "timeout", optional=True)
+        checked = PoseBoundOptions(**options)
+        return None if timeout is None else replace(checked, timeout=timeout)
 
 
 def certify(backbone: nn.Module, vertices, seed: SeedImage, *, alpha=1.0, kappa=1.0, **options):
@@ -66,7 +99,9 @@ def certify_cells(
 
     The cells share the hull, so what depends on the hull alone is made once: the
     pose-bound method's region search, enumeration and attacks (a
-    :class:`kpstudy.certify.pose_bound_method.HullPoseBound`).
+    :class:`kpstudy.certify.pose_bound_method.HullPoseBound`). Both methods' keywords are
+    checked before any work (:class:`~kpstudy.certify.allocation_method.AllocationOptions`,
+    :func:`pose_bound_options`: the ``pose_bound_*`` ones even when the method is skipped).
 
     Parameters
     ----------
@@ -90,8 +125,9 @@ def certify_cells(
     pose_bound_method : str
         Its bound method (``'forward'`` or ``'zonotope'``).
     pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
-        Its node budget (``None``: the seconds alone) and the hull's splits before the
-        first bounds (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
+        Its node budget (``None``: the seconds alone; 0: the witnesses alone) and the
+        hull's splits before the first bounds
+        (:class:`kpstudy.certify.pose_bound_method.HullPoseBound`'s ``max_nodes``,
         ``start_depth``, ``start_splits``).
     pose_bound_refine_nodes : int
         Its focused second searches for an ``unknown`` verdict
@@ -123,24 +159,23 @@ def certify_cells(
         ``pose_bound_timeout``, the ``pb_*`` entries of
         :meth:`kpstudy.certify.pose_bound_method.HullPoseBound.decide`.
     """
-    if isinstance(check_samples, bool) or int(check_samples) != check_samples or check_samples < 0:
-        raise ValueError(f"check_samples: expected an integer >= 0, got {check_samples!r}")
+    AllocationOptions(method, timeout, max_nodes)
+    _checks.integer(check_samples, "check_samples", minimum=0)
+    pose_bound = pose_bound_options(
+        pose_bound_method=pose_bound_method,
+        pose_bound_timeout=pose_bound_timeout,
+        pose_bound_nodes=pose_bound_nodes,
+        pose_bound_start_depth=pose_bound_start_depth,
+        pose_bound_start_splits=pose_bound_start_splits,
+        pose_bound_refine_nodes=pose_bound_refine_nodes,
+        pose_bound_stride=pose_bound_stride,
+    )
     cells = list(cells)
     if not cells or any(np.shape(c) != (2,) for c in cells):
         raise ValueError(f"cells: expected one or more (alpha, kappa) pairs, got {cells!r}")
     cells = [
         (float(_checks.positive(a, "alpha")), float(_checks.positive(k, "kappa"))) for a, k in cells
     ]
-    pose_bound = dict(
-        stride=pose_bound_stride,
-        timeout=pose_bound_timeout,
-        method=pose_bound_method,
-        max_nodes=pose_bound_nodes,
-        start_depth=pose_bound_start_depth,
-        start_splits=pose_bound_start_splits,
-        refine_nodes=pose_bound_refine_nodes,
-        sample_seed=sample_seed,
-    )
     shared = None  # the pose-bound method on this hull, made with the first cell
     records = []
     for alpha, kappa in cells:
@@ -166,9 +201,10 @@ def certify_cells(
             sample_seed=sample_seed,
         )
         record["tolerance_units"] = tolerance_units
-        if pose_bound_timeout is not None:
+        if pose_bound is not None:
             if shared is None:
-                shared = _hull_pose_bound(backbone, instance, seed, pose_bound)
+                options = dict(asdict(pose_bound), sample_seed=sample_seed)
+                shared = _hull_pose_bound(backbone, instance, seed, options)
             record.update(shared.decide(instance.xi, kappa))
         record["total_time"] = time.perf_counter() - start
         records.append(record)

@@ -66,10 +66,12 @@ from __future__ import annotations
 import functools
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from kpstudy import _checks
 from kpstudy._memo import digest
 from kpstudy.certify.pose_bound_attack import HullArgmaxPoses, targeted_witness
 from kpstudy.certify.pose_bound_regions import (
@@ -94,6 +96,7 @@ __all__ = [
     "FOCUS_PER_NODE",
     "HullPoseBound",
     "MAX_COMBINATIONS",
+    "PoseBoundOptions",
     "pose_bound",
 ]
 
@@ -111,6 +114,41 @@ FOCUS_PER_NODE = 8
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
 #: Batched PnP solves about 1.4·10⁵ problems per second on 2 CPU cores.
 MAX_COMBINATIONS = 10**6
+
+
+@dataclass(frozen=True)
+class PoseBoundOptions:
+    """The pose-bound method's options, :class:`HullPoseBound`'s keywords of the same names
+    and defaults, checked when made: a ``ValueError`` names the first that is not valid.
+    The one check of these options, whoever takes them (:class:`HullPoseBound`,
+    :func:`kpstudy.certify.certify_cells`, the study's settings and profiles).
+
+    ``method``, ``timeout``, ``max_nodes`` and ``start_depth`` follow
+    :func:`kpstudy.verify.reachable_argmax` (a node budget of 0 bounds no node: witnesses
+    only); ``start_splits`` is a number in ``[0, MAX_START_DEPTH]``, ``refine_nodes`` an
+    integer >= 0 and ``stride`` an odd integer >= 1.
+    """
+
+    method: str = "forward"
+    timeout: float = 10.0
+    max_nodes: int | None = None
+    start_depth: int = 0
+    start_splits: float = 0.0
+    refine_nodes: int = 0
+    stride: int = 1
+
+    def __post_init__(self) -> None:
+        if _checks.integer(self.stride, "stride", minimum=1) % 2 == 0:
+            raise ValueError(f"stride: expected an odd integer >= 1, got {self.stride!r}")
+        check_search(self.method, self.timeout, self.max_nodes, self.start_depth)
+        splits = self.start_splits
+        if isinstance(splits, bool) or not (
+            isinstance(splits, int | float) and 0 <= splits <= MAX_START_DEPTH
+        ):
+            raise ValueError(
+                f"start_splits: expected a number in [0, {MAX_START_DEPTH}], got {splits!r}"
+            )
+        _checks.integer(self.refine_nodes, "refine_nodes", minimum=0)
 
 
 def pose_bound(backbone, hull, seed, R, t, M, eps, *, kappa: float = 1.0, **search) -> dict:
@@ -164,7 +202,8 @@ class HullPoseBound:
     max_nodes : int, optional
         Most branch-and-bound nodes of the search: a budget that gives the same regions on
         any machine (``timeout`` then only caps a slow one, and ``pb_stopped`` says which
-        fired: ``'time'`` if the cap ended any of the searches, refinements included).
+        fired: ``'time'`` if the cap ended any of the searches, refinements included); 0
+        bounds no node (the witnesses alone).
     start_depth : int
         Splits of the hull before the first bounds
         (:func:`kpstudy.verify.reachable_argmax`).
@@ -185,6 +224,8 @@ class HullPoseBound:
         Random combinations of region pixels re-solved in the nonlinear check, besides the
         12 extreme ones.
     sample_seed : int
+
+    The method's keywords are checked by :class:`PoseBoundOptions` before any work.
     """
 
     def __init__(
@@ -206,20 +247,17 @@ class HullPoseBound:
         random_corners: int = 64,
         sample_seed: int = 0,
     ) -> None:
-        if isinstance(stride, bool) or int(stride) != stride or stride < 1 or stride % 2 == 0:
-            raise ValueError(f"stride: expected an odd integer >= 1, got {stride!r}")
-        check_search(method, timeout, max_nodes, start_depth)
-        check_start_splits(start_splits)
+        PoseBoundOptions(
+            method, timeout, max_nodes, start_depth, start_splits, refine_nodes, stride
+        )
         start_depth = min(MAX_START_DEPTH, start_depth + math.ceil(start_splits * hull.n))
         self.backbone, self.hull, self.seed, self.R, self.t = backbone, hull, seed, R, t
-        self.M, self.stride, self.method = M, int(stride), method
+        self.M, self.stride, self.method = M, stride, method
         self.random_corners, self.sample_seed = random_corners, sample_seed
-        if isinstance(refine_nodes, bool) or int(refine_nodes) != refine_nodes or refine_nodes < 0:
-            raise ValueError(f"refine_nodes: expected an integer >= 0, got {refine_nodes!r}")
         self.search = dict(
             method=method, timeout=timeout, max_nodes=max_nodes, start_depth=start_depth
         )
-        self.refine = int(refine_nodes)
+        self.refine = refine_nodes
         hm = backbone.heatmap_size
         self.factors = scale_factors(seed.image_size, hm)
         self.V = np.asarray(seed.keypoints, dtype=np.float64)
@@ -474,16 +512,6 @@ class HullPoseBound:
         search = dict(self.search, samples=0)
         return search_regions(
             self.backbone, self.hull, self.centers, 1, search, witnesses=witnesses
-        )
-
-
-def check_start_splits(start_splits, name: str = "start_splits") -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``start_splits`` (:class:`HullPoseBound`'s)
-    is a number in ``[0, MAX_START_DEPTH]``."""
-    number = isinstance(start_splits, (int, float)) and not isinstance(start_splits, bool)
-    if not (number and 0 <= start_splits <= MAX_START_DEPTH):
-        raise ValueError(
-            f"{name}: expected a number in [0, {MAX_START_DEPTH}], got {start_splits!r}"
         )
 
 

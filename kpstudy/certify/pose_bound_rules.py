@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from kpstudy import _checks
 from kpstudy.models.preprocess import to_image_pixels
 from kpstudy.pose.geometry import euler_from_matrix, inside_tolerance, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp_batch
@@ -129,8 +130,7 @@ def enumerate_combinations(seed, keypoints, R, t, eps, chunk=None) -> tuple:
     per keypoint, which of its pixels ``(n_k,)`` bool take part in a combination outside
     ``eps``."""
     chunk = ENUMERATION_CHUNK if chunk is None else chunk
-    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
-        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
+    _checks.integer(chunk, "chunk", minimum=1)
     points = [np.asarray(p, dtype=np.float64) for p in keypoints]
     for k, p in enumerate(points):
         if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:

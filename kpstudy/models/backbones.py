@@ -2,6 +2,7 @@
 
 from torch import nn
 
+from kpstudy import _checks
 from kpstudy.models.cnn import (
     HeatmapCNN,
     HeatmapCNNAffineDecoder,
@@ -42,6 +43,5 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
     """
     if name not in BACKBONES:
         raise ValueError(f"name: expected one of {sorted(BACKBONES)}, got {name!r}")
-    if isinstance(num_keypoints, bool) or not isinstance(num_keypoints, int) or num_keypoints < 1:
-        raise ValueError(f"num_keypoints: expected a positive integer, got {num_keypoints!r}")
+    _checks.integer(num_keypoints, "num_keypoints", minimum=1)
     return BACKBONES[name](num_keypoints)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpstudy import _checks
 from kpstudy.models.preprocess import (
     resize_to_input,
     scale_factors,
@@ -98,8 +99,7 @@ def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> K
 
     if split not in SPLITS:
         raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
-    if isinstance(input_size, bool) or not isinstance(input_size, int) or input_size < 1:
-        raise ValueError(f"input_size: expected a positive integer, got {input_size!r}")
+    _checks.integer(input_size, "input_size", minimum=1)
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         raise FileNotFoundError(f"data: no dataset folder at {data_dir}")

@@ -59,6 +59,7 @@ from kornia.geometry.subpix import render_gaussian2d
 from torch import nn
 from tqdm import tqdm
 
+from kpstudy import _checks
 from kpstudy.io import write_bytes_atomic
 from kpstudy.models.backbones import BACKBONES, build_backbone
 from kpstudy.models.data import KeypointSet, load_keypoint_set
@@ -122,11 +123,8 @@ class TrainConfig:
                 f"backbone: expected one of {sorted(BACKBONES)}, got {self.backbone!r}"
             )
         for name in ("epochs", "batch_size", "certified_hulls", "certified_ramp"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        if self.images is not None and (not isinstance(self.images, int) or self.images < 1):
-            raise ValueError(f"images: expected a positive integer or None, got {self.images!r}")
+            _checks.integer(getattr(self, name), name, minimum=1)
+        _checks.integer(self.images, "images", minimum=1, optional=True)
         from kpstudy.models.certified import BOUND_METHODS
 
         if self.certified_method not in BOUND_METHODS:
@@ -162,12 +160,7 @@ class TrainConfig:
                 raise ValueError(
                     f"{name}: expected a positive number (finite), got {getattr(self, name)!r}"
                 )
-        if isinstance(self.certified_start, bool) or not (
-            isinstance(self.certified_start, int) and self.certified_start >= 0
-        ):
-            raise ValueError(
-                f"certified_start: expected an integer >= 0, got {self.certified_start!r}"
-            )
+        _checks.integer(self.certified_start, "certified_start", minimum=0)
         for name in (
             "weight_decay",
             "dsnt_weight",

@@ -41,7 +41,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from kpstudy._checks import float_array, positive
+from kpstudy._checks import float_array, integer, positive
 
 __all__ = [
     "MAX_BOUND",
@@ -490,8 +490,7 @@ def allocate_many(problems, *, workers: int = 1, **options) -> list[Allocation]:
     list of Allocation
         In the order of ``problems``; each is the exact optimum, whatever ``workers`` is.
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
+    integer(workers, "workers", minimum=1)
     problems = [tuple(p) for p in problems]
     task = functools.partial(_allocate_one, options=options)
     if workers == 1 or len(problems) < 8 * workers:

@@ -56,6 +56,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from kpstudy import _checks
 from kpstudy.io import check_output_file, source_fingerprint
 
 __all__ = [
@@ -108,6 +109,22 @@ def _setting(default, help: str):
     return field(default=default, metadata={"help": help})
 
 
+#: The :class:`Settings` fields of the allocation method (also those a model's own
+#: allocation budget may set, :func:`run_study`) → its
+#: :class:`~kpstudy.certify.allocation_method.AllocationOptions` field.
+ALLOCATION_SETTINGS = {"method": "method", "nodes": "max_nodes", "timeout": "timeout"}
+
+
+def allocation_options(prefix: str = "", **chosen):
+    """The allocation method's :class:`~kpstudy.certify.allocation_method.AllocationOptions`
+    of :data:`ALLOCATION_SETTINGS` ``chosen`` (one left out: its default), checked: a
+    ``ValueError`` names the setting, after ``prefix``."""
+    from kpstudy.certify.allocation_method import AllocationOptions
+
+    with _checks.named({v: k for k, v in ALLOCATION_SETTINGS.items()}, prefix):
+        return AllocationOptions(**{ALLOCATION_SETTINGS[k]: v for k, v in chosen.items()})
+
+
 @dataclass(frozen=True)
 class Settings:
     """What every instance of a campaign shares: the one declaration of the campaign
@@ -132,8 +149,9 @@ class Settings:
         seconds per hull (``None`` skips it), cell side, bound method.
     pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
         Its node budget per hull (``None``: the seconds alone decide; with a budget the
-        seconds only cap a slow machine) and the hull's splits before the first bounds:
-        ``start_depth + ⌈start_splits · m⌉`` for a hull of ``m`` perturbed images.
+        seconds only cap a slow machine; 0: the witnesses alone) and the hull's splits
+        before the first bounds: ``start_depth + ⌈start_splits · m⌉`` for a hull of ``m``
+        perturbed images.
     pose_bound_refine_nodes :
         Its focused second search (0: none).
     tolerance_units : {'heatmap', 'paper'}
@@ -180,6 +198,18 @@ class Settings:
         "the allocation's reading: heatmap pixels (sound) or the paper's (allocated per "
         "image pixel, used as heatmap pixels)",
     )
+
+    def allocation_options(self):
+        """The allocation method's options (:func:`allocation_options`), checked."""
+        return allocation_options(**{name: getattr(self, name) for name in ALLOCATION_SETTINGS})
+
+    def pose_bound_options(self):
+        """The pose-bound method's options of the ``pose_bound_*`` fields, checked
+        (:func:`kpstudy.certify.hull.pose_bound_options`: ``None`` when
+        ``pose_bound_timeout`` is ``None``)."""
+        from kpstudy.certify.hull import POSE_BOUND_KEYWORDS, pose_bound_options
+
+        return pose_bound_options(**{name: getattr(self, name) for name in POSE_BOUND_KEYWORDS})
 
     def certify_options(self) -> dict:
         """The keywords of :func:`kpstudy.certify.certify_cells` these settings give."""
@@ -248,9 +278,7 @@ def grid(
     rows = load_perturbations(data_dir, kind)["images"]
     ids = sorted({r["image_id"] for r in rows})
     if seeds is not None:
-        if isinstance(seeds, bool) or int(seeds) != seeds or seeds < 1:
-            raise ValueError(f"seeds: expected a positive integer, got {seeds!r}")
-        ids = ids[: int(seeds)]
+        ids = ids[: _checks.integer(seeds, "seeds", minimum=1)]
     out = []
     if kind in GLOBAL_KINDS:
         stored = sorted({r["level"] for r in rows})
@@ -654,8 +682,7 @@ def _execute(
     """Run the missing hulls of every campaign in one pool (or this process, or Dask),
     storing each record in its campaign's store as it arrives. Hulls with the longest
     pose-bound time cap go first, so that the pool's last tasks are short ones."""
-    if isinstance(workers, bool) or int(workers) != workers or workers < 1:
-        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    _checks.integer(workers, "workers", minimum=1)
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
         raise ValueError(f"scheduler: expected a Dask scheduler address, got {scheduler!r}")
     tasks = [(c, group) for c in campaigns for group in _by_hull(c.missing)]
@@ -775,10 +802,6 @@ def _stop(pool: ProcessPoolExecutor) -> None:
         with contextlib.suppress(Exception):
             process.join(5)
     pool.shutdown(wait=False, cancel_futures=True)
-
-
-#: The :class:`Settings` fields a model's own allocation budget may set (:func:`run_study`).
-ALLOCATION_SETTINGS = ("method", "nodes", "timeout")
 
 
 def run_study(
@@ -988,50 +1011,13 @@ def _check_settings(settings: Settings) -> None:
         raise FileNotFoundError(f"checkpoint: no file at {settings.checkpoint}")
     if not Path(settings.data_dir, "annotations.json").is_file():
         raise FileNotFoundError(f"data_dir: no data_gen dataset at {settings.data_dir}")
-    from kpstudy.verify.bounds import METHODS
-
-    if settings.method not in ("auto", *METHODS):
-        raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {settings.method!r}")
-    if not settings.timeout > 0:
-        raise ValueError(f"timeout: expected seconds > 0, got {settings.timeout}")
-    if settings.pose_bound_timeout is not None and not settings.pose_bound_timeout > 0:
-        raise ValueError(
-            f"pose_bound_timeout: expected None or seconds > 0, got {settings.pose_bound_timeout}"
-        )
-    stride = settings.pose_bound_stride
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1 or stride % 2 == 0:
-        raise ValueError(f"pose_bound_stride: expected an odd integer >= 1, got {stride!r}")
-    for name in ("check_samples", "hull_seed", "pose_bound_refine_nodes"):
-        value = getattr(settings, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
-    for name in ("nodes", "pose_bound_nodes"):
-        nodes = getattr(settings, name)
-        if nodes is not None and (
-            isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1
-        ):
-            raise ValueError(f"{name}: expected None or an integer >= 1, got {nodes!r}")
-    depth = settings.pose_bound_start_depth
-    from kpstudy.verify.reachable import MAX_START_DEPTH
-    from kpstudy.verify.reachable import METHODS as REGION_METHODS
-
-    if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= MAX_START_DEPTH:
-        raise ValueError(
-            f"pose_bound_start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {depth!r}"
-        )
-
-    from kpstudy.certify.pose_bound_method import check_start_splits
-
-    check_start_splits(settings.pose_bound_start_splits, "pose_bound_start_splits")
-
+    settings.allocation_options()
+    _checks.integer(settings.check_samples, "check_samples", minimum=0)
+    _checks.integer(settings.hull_seed, "hull_seed", minimum=0)
+    settings.pose_bound_options()
     from kpstudy.pose.allocation import allocation_scale
 
     allocation_scale(settings.tolerance_units, None)  # checks the name
-    if settings.pose_bound_method not in REGION_METHODS:
-        raise ValueError(
-            f"pose_bound_method: expected one of {REGION_METHODS}, "
-            f"got {settings.pose_bound_method!r}"
-        )
 
 
 def _check_inputs(settings: Settings, instances: list[Instance]) -> None:

@@ -166,7 +166,6 @@ class Profile:
                 f"got seeds={self.seeds}, resnet_seeds={self.resnet_seeds}"
             )
         from kpstudy.pose.allocation import TOLERANCE_UNITS
-        from kpstudy.study.campaign import Settings
 
         readings = self.tolerance_units
         if (
@@ -179,8 +178,8 @@ class Profile:
                 f"tolerance_units: expected a tuple of distinct readings from "
                 f"{TOLERANCE_UNITS}, got {readings!r}"
             )
-        from kpstudy.study.campaign import ALLOCATION_SETTINGS
-        from kpstudy.verify.bounds import METHODS
+        from kpstudy.certify.hull import pose_bound_options
+        from kpstudy.study.campaign import ALLOCATION_SETTINGS, allocation_options
 
         budgets = [("", dict(method=self.method, nodes=self.nodes))]
         for model, chosen in self.allocation.items():
@@ -191,26 +190,11 @@ class Profile:
             ):
                 raise ValueError(
                     f"allocation: expected {{'cnn' or {FRIENDLY_MODEL!r}: {{setting: value}}}} "
-                    f"with settings from {ALLOCATION_SETTINGS}, got {model!r}: {chosen!r}"
+                    f"with settings from {tuple(ALLOCATION_SETTINGS)}, got {model!r}: {chosen!r}"
                 )
             budgets.append(("allocation: ", chosen))
         for where, chosen in budgets:
-            method, nodes = chosen.get("method", "auto"), chosen.get("nodes")
-            if method not in ("auto", *METHODS):
-                raise ValueError(
-                    f"{where}method: expected 'auto' or one of {METHODS}, got {method!r}"
-                )
-            if nodes is not None and (
-                isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1
-            ):
-                raise ValueError(
-                    f"{where}nodes: expected None or a positive integer, got {nodes!r}"
-                )
-            timeout = chosen.get("timeout", 1.0)
-            if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
-                raise ValueError(f"{where}timeout: expected a positive number, got {timeout!r}")
-
-        settings = {f.name for f in fields(Settings) if f.name.startswith("pose_bound_")}
+            allocation_options(where, **chosen)
         for name in ("local_pose_bound", "global_pose_bound"):
             for model, chosen in getattr(self, name).items():
                 if model not in ("cnn", FRIENDLY_MODEL) or not isinstance(chosen, dict):
@@ -218,17 +202,7 @@ class Profile:
                         f"{name}: expected {{'cnn' or {FRIENDLY_MODEL!r}: {{setting: value}}}}, "
                         f"got {model!r}: {chosen!r}"
                     )
-                unknown = sorted(set(chosen) - settings)
-                if unknown:
-                    raise ValueError(
-                        f"{name}: unknown settings {unknown}; expected {sorted(settings)}"
-                    )
-                method = chosen.get("pose_bound_method", "forward")
-                if method not in ("forward", "zonotope", "ibp"):
-                    raise ValueError(
-                        f"{name}: expected pose_bound_method 'forward', 'zonotope' or 'ibp', "
-                        f"got {method!r}"
-                    )
+                pose_bound_options(f"{name}: ", **chosen)
         if self.symmetry_backbone not in ("cnn", "resnet18"):
             raise ValueError(
                 f"symmetry_backbone: expected 'cnn' or 'resnet18', got {self.symmetry_backbone!r}"

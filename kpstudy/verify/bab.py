@@ -108,7 +108,9 @@ def verify(
     ('violated', tensor([0.], dtype=torch.float64))
     """
     start = time.perf_counter()
-    method = _check(method, timeout, max_nodes, batch, tol)
+    method = check_verify(method, timeout, max_nodes, batch)
+    if not tol >= 0:
+        raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
     if not isinstance(spec, ArgmaxSpec):
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     _check_dtype(model, input_set)
@@ -165,14 +167,14 @@ def verify(
     )
 
 
-def _check(method, timeout, max_nodes, batch, tol) -> str:
+def check_verify(method, timeout, max_nodes, batch=None) -> str:
+    """Raise ``ValueError`` naming the first of :func:`verify`'s bound method and budget
+    arguments that is not valid (before any work); the method (``'auto'``: the zonotope)."""
     if method == "auto":
         method = "zonotope"
     if method not in METHODS:
         raise ValueError(f"method: expected 'auto' or one of {METHODS}, got {method!r}")
     check_budget(timeout, max_nodes, batch)
-    if not tol >= 0:
-        raise ValueError(f"tol: expected a number >= 0, got {tol!r}")
     return method
 
 

@@ -21,6 +21,7 @@ import time
 import numpy as np
 import torch
 
+from kpstudy import _checks
 from kpstudy.verify import bounds as _bounds
 from kpstudy.verify import operators
 from kpstudy.verify.graph import Graph, trace
@@ -89,17 +90,12 @@ def bound_profile(
     """
     if method not in PROFILE_METHODS:
         raise ValueError(f"method: expected one of {PROFILE_METHODS}, got {method!r}")
-    for name, value, least in (
-        ("samples", samples, 1),
-        ("crown_rows", crown_rows, 0),
-        ("depth", depth, 0),
-    ):
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise ValueError(f"{name}: expected an integer >= {least}, got {value!r}")
+    _checks.integer(samples, "samples", minimum=1)
+    _checks.integer(crown_rows, "crown_rows", minimum=0)
+    _checks.integer(depth, "depth", minimum=0)
     if depth and crown_rows:
         raise ValueError(f"crown_rows: expected 0 with depth {depth}, got {crown_rows}")
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"chunk: expected an integer >= 1, got {chunk!r}")
+    _checks.integer(chunk, "chunk", minimum=1)
     graph = trace(model, _bounds.example_input(input_set))
     extra = max(1, samples // 4)
     points = [input_set.sample(samples, seed)]

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from kpstudy import _checks
 from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
 from kpstudy.verify.graph import trace
 from kpstudy.verify.search import (
@@ -214,9 +215,8 @@ def reachable_argmax(
         raise ValueError(
             f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
         )
-    for name, v, least in (("candidates", candidates, 1), ("samples", samples, 0)):
-        if isinstance(v, bool) or not (isinstance(v, int) and v >= least):
-            raise ValueError(f"{name}: expected an integer >= {least}, got {v!r}")
+    _checks.integer(candidates, "candidates", minimum=1)
+    _checks.integer(samples, "samples", minimum=0)
     sizes = [int(s) for s in group_sizes]
     if not sizes or min(sizes) < 1:
         raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
@@ -313,15 +313,8 @@ def check_search(method, timeout, max_nodes, start_depth, batch=None) -> None:
     arguments that is not valid (before any work)."""
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    check_budget(timeout, max_nodes or None, batch)
-    if max_nodes is not None and (isinstance(max_nodes, bool) or max_nodes < 0):
-        raise ValueError(f"max_nodes: expected None or an integer >= 0, got {max_nodes!r}")
-    if isinstance(start_depth, bool) or not (
-        isinstance(start_depth, int) and 0 <= start_depth <= MAX_START_DEPTH
-    ):
-        raise ValueError(
-            f"start_depth: expected an integer in [0, {MAX_START_DEPTH}], got {start_depth!r}"
-        )
+    check_budget(timeout, max_nodes, batch, least_nodes=0)  # 0: witnesses only
+    _checks.integer(start_depth, "start_depth", minimum=0, maximum=MAX_START_DEPTH)
 
 
 class _Reach:

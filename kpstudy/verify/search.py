@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import torch
 
+from kpstudy import _checks
 from kpstudy.verify.bounds import BoundsTimeout, example_input, symbol_budget
 
 
@@ -149,13 +150,12 @@ def absolute_tol(graph, input_set, tol: float) -> float:
     return tol * (1.0 + float(y0.abs().max()))
 
 
-def check_budget(timeout, max_nodes, batch) -> None:
-    """Refuse a search budget that is not seconds > 0 and optional positive counts."""
-    if not timeout > 0:
-        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
-    for name, v in (("max_nodes", max_nodes), ("batch", batch)):
-        if v is not None and not (isinstance(v, int) and v >= 1):
-            raise ValueError(f"{name}: expected None or an integer >= 1, got {v!r}")
+def check_budget(timeout, max_nodes, batch, *, least_nodes: int = 1) -> None:
+    """Refuse a search budget that is not seconds > 0, an optional node count of at least
+    ``least_nodes`` and an optional positive batch."""
+    _checks.seconds(timeout, "timeout")
+    _checks.integer(max_nodes, "max_nodes", minimum=least_nodes, optional=True)
+    _checks.integer(batch, "batch", minimum=1, optional=True)
 
 
 def _take(queue: list, batch: int):
