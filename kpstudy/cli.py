@@ -96,10 +96,9 @@ def main(argv=None) -> int:
         help="train the verification-friendly CNN from scratch (default: the shipped one)",
     )
 
-    from kpstudy.models.training import CERTIFIED_WEIGHT, TrainConfig
+    from kpstudy.models.training import CERTIFIED_GROUP, CERTIFIED_WEIGHT, TrainConfig
     from kpstudy.study.campaign import InstanceErrors, add_arguments
 
-    default = TrainConfig()
     cmp = sub.add_parser(
         "compare",
         help="what differs between two results folders of a profile (tables, timing "
@@ -109,84 +108,23 @@ def main(argv=None) -> int:
     cmp.add_argument("b", help="another, e.g. a second run's")
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
-    tr.add_argument(
-        "--backbone",
-        default=default.backbone,
-        help="cnn (default), cnn_affine, cnn_patch, cnn_patch_smooth or resnet18",
-    )
-    tr.add_argument("--epochs", type=int, default=default.epochs)
     tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")
-    tr.add_argument("--batch-size", type=int, default=default.batch_size)
-    tr.add_argument("--lr", type=float, default=default.lr, help="peak learning rate")
-    tr.add_argument("--weight-decay", type=float, default=default.weight_decay)
-    tr.add_argument("--sigma", type=float, default=default.sigma, help="target std, heatmap px")
-    tr.add_argument("--dsnt-weight", type=float, default=default.dsnt_weight)
-    tr.add_argument("--jitter", type=float, default=default.jitter)
-    tr.add_argument("--noise", type=float, default=default.noise)
-    tr.add_argument("--images", type=int, help="use at most this many training images")
-    tr.add_argument("--seed", type=int, default=default.seed)
+    add_arguments(tr, TrainConfig)  # every models.training.TrainConfig field with help
     tr.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     tr.add_argument("--device", default="cpu", help="cpu (default) or cuda")
-    tr.add_argument(
-        "--schedule", default=default.schedule, help="onecycle (default) or constant learning rate"
-    )
-    tr.add_argument(
-        "--precision",
-        default=default.precision,
-        help="forward pass of the natural loss: float32 (default) or bfloat16 (autocast)",
-    )
     tr.add_argument(
         "--init",
         dest="init_checkpoint",
         help="start from this checkpoint's weights (a fine-tuning stage)",
     )
-    cert = tr.add_argument_group("certified training (a bound term over random hulls)")
+    cert = tr.add_argument_group(CERTIFIED_GROUP)
     cert.add_argument(
         "--certified",
         action="store_true",
         help=f"add the bound term with weight {CERTIFIED_WEIGHT} (--certified-weight sets it)",
     )
     cert.add_argument("--certified-weight", type=float, help="weight of the bound term")
-    cert.add_argument(
-        "--certified-hulls", type=int, default=default.certified_hulls, help="hulls per batch"
-    )
-    cert.add_argument(
-        "--certified-start",
-        type=int,
-        default=default.certified_start,
-        help="natural epochs before the term",
-    )
-    cert.add_argument(
-        "--certified-scale",
-        type=float,
-        default=default.certified_scale,
-        help="the hulls' final size, a fraction of the full hull (SABR-style sub-hulls)",
-    )
-    cert.add_argument(
-        "--certified-scale-from",
-        type=float,
-        default=default.certified_scale_from,
-        help="the hulls' size when the term starts (default 0: the image itself)",
-    )
-    cert.add_argument(
-        "--certified-method",
-        default=default.certified_method,
-        help="the term's bounds: zonotope (the verifier's; default) or forward (cheaper, looser)",
-    )
-    cert.add_argument(
-        "--certified-ramp",
-        type=int,
-        default=default.certified_ramp,
-        help="epochs over which the hulls grow to full size",
-    )
-
-    tr.add_argument(
-        "--stability-weight",
-        type=float,
-        default=default.stability_weight,
-        help="share of a first-layer ReLU stability term over brightness and contrast hulls "
-        "(default 0: none)",
-    )
+    add_arguments(cert, TrainConfig, CERTIFIED_GROUP)
 
     ev = sub.add_parser("evaluate", help="keypoint and pose metrics of a trained checkpoint")
     ev.add_argument("--checkpoint", required=True)

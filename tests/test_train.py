@@ -152,6 +152,27 @@ def test_bad_config_is_named():
         TrainConfig(precision="float16")
 
 
+def test_the_command_line_offers_every_config_field_with_its_default(monkeypatch):
+    """``train``'s options are TrainConfig's fields, typed and with its defaults; ``--init``
+    (a checkpoint, not its digest) and ``--certified-weight`` (``--certified``'s weight
+    unless given) are the command line's own."""
+    from dataclasses import fields
+
+    from kpstudy import cli
+
+    parsed = []
+    monkeypatch.setattr(cli, "_train", parsed.append)
+    assert cli.main(["train", "--data", "d", "--out", "o.pt"]) == 0
+    for f in fields(TrainConfig):
+        if f.name not in ("init", "certified_weight"):
+            assert getattr(parsed[-1], f.name) == f.default, f.name
+    assert parsed[-1].certified_weight is None and parsed[-1].init_checkpoint is None
+    chosen = ["--epochs", "3", "--lr", "0.5", "--certified-ramp", "2", "--schedule", "constant"]
+    cli.main(["train", "--data", "d", "--out", "o.pt", *chosen])
+    args = parsed[-1]
+    assert (args.epochs, args.lr, args.certified_ramp, args.schedule) == (3, 0.5, 2, "constant")
+
+
 def test_a_bfloat16_run_trains_float32_weights(checkpoint, tiny_dataset, tmp_path):
     config = TrainConfig(**(vars(TINY) | {"precision": "bfloat16"}))
     state = train(tiny_dataset, tmp_path / "bf16.pt", config, progress=False)

@@ -49,7 +49,7 @@ import math
 import numbers
 import re
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import kornia.augmentation as KA
@@ -75,6 +75,16 @@ PRECISIONS = ("float32", "bfloat16")
 CERTIFIED_WEIGHT = 2.0
 
 
+#: The argument group of the certified-training options (``python -m kpstudy train``).
+CERTIFIED_GROUP = "certified training (a bound term over random hulls)"
+
+
+def _option(default, help: str, group: str | None = None):
+    """A :class:`TrainConfig` field and its command-line help (``python -m kpstudy train``
+    offers every field that has one, a ``group``'s in that argument group)."""
+    return field(default=default, metadata={"help": help, "group": group})
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that defines a training run (stored in the checkpoint).
@@ -94,28 +104,45 @@ class TrainConfig:
     random initialisation from ``seed``).
     """
 
-    backbone: str = "cnn"
-    epochs: int = 20
-    batch_size: int = 32
-    lr: float = 3e-3
-    weight_decay: float = 1e-4
-    sigma: float = 1.0
-    dsnt_weight: float = 0.05
-    jitter: float = 0.2
-    noise: float = 0.02
-    images: int | None = None
-    seed: int = 0
+    backbone: str = _option("cnn", "cnn, cnn_affine, cnn_patch, cnn_patch_smooth or resnet18")
+    epochs: int = _option(20, "training epochs")
+    batch_size: int = _option(32, "images per batch")
+    lr: float = _option(3e-3, "peak learning rate")
+    weight_decay: float = _option(1e-4, "AdamW weight decay")
+    sigma: float = _option(1.0, "target std, heatmap px")
+    dsnt_weight: float = _option(0.05, "weight of the DSNT keypoints' error, heatmap px")
+    jitter: float = _option(0.2, "brightness, contrast and saturation jitter strength")
+    noise: float = _option(0.02, "Gaussian noise std on the [0, 1] input")
+    images: int | None = _option(None, "use at most this many training images")
+    seed: int = _option(0, "random seed")
     certified_weight: float = 0.0
-    certified_hulls: int = 8
-    certified_start: int = 1
-    certified_ramp: int = 4
-    certified_scale: float = 1.0
-    certified_method: str = "zonotope"
-    certified_scale_from: float = 0.0
-    stability_weight: float = 0.0
-    schedule: str = "onecycle"
+    certified_hulls: int = _option(8, "hulls per batch", CERTIFIED_GROUP)
+    certified_start: int = _option(1, "natural epochs before the term", CERTIFIED_GROUP)
+    certified_ramp: int = _option(
+        4, "epochs over which the hulls grow to full size", CERTIFIED_GROUP
+    )
+    certified_scale: float = _option(
+        1.0,
+        "the hulls' final size, a fraction of the full hull (SABR-style sub-hulls)",
+        CERTIFIED_GROUP,
+    )
+    certified_method: str = _option(
+        "zonotope",
+        "the term's bounds: zonotope (the verifier's) or forward (cheaper, looser)",
+        CERTIFIED_GROUP,
+    )
+    certified_scale_from: float = _option(
+        0.0, "the hulls' size when the term starts (0: the image itself)", CERTIFIED_GROUP
+    )
+    stability_weight: float = _option(
+        0.0,
+        "share of a first-layer ReLU stability term over brightness and contrast hulls (0: none)",
+    )
+    schedule: str = _option("onecycle", "onecycle or constant learning rate")
     init: str | None = None
-    precision: str = "float32"
+    precision: str = _option(
+        "float32", "forward pass of the natural loss: float32 or bfloat16 (autocast)"
+    )
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:

@@ -227,11 +227,14 @@ class Settings:
         return cls(str(args.checkpoint), str(args.data), **chosen)
 
 
-def add_arguments(parser) -> None:
-    """An ``argparse`` option per :class:`Settings` field with help: ``--pose-bound-nodes``
-    for ``pose_bound_nodes``, typed as the field and with its default."""
-    for f in fields(Settings):
-        if "help" not in f.metadata:
+def add_arguments(parser, cls=Settings, group: str | None = None) -> None:
+    """An ``argparse`` option per field with help of the dataclass ``cls`` (its metadata's
+    ``'help'``; :class:`Settings`, :class:`kpstudy.models.training.TrainConfig`):
+    ``--pose-bound-nodes`` for ``pose_bound_nodes``, typed as the field and with its
+    default. Only the fields whose metadata's ``'group'`` is ``group`` (default: those of
+    no group), so that a caller can put a group's in an argument group of its own."""
+    for f in fields(cls):
+        if "help" not in f.metadata or f.metadata.get("group") != group:
             continue
         kind = float if "float" in f.type else int if "int" in f.type else str
         default = "" if f.default is None else f" (default {f.default})"
