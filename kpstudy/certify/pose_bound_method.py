@@ -108,7 +108,7 @@ TARGETED_MOVES = 4
 #: Most focus cells per node of the second search (:class:`HullPoseBound`'s
 #: ``refine_nodes``): a larger focus is not searched. The quick T-local hulls that such a
 #: search decided cleared 168 cells in 12 nodes and 21 pixels in 20; on one it could not
-#: decide, 6.3·10³ of 6.7·10³ single moves outside Ξ were left after 48 (docs/findings.md).
+#: decide, 6.3·10³ of 6.7·10³ single moves outside Ξ were left after 48.
 FOCUS_PER_NODE = 8
 #: Most combinations of region pixels (the product of the keypoints' region sizes) that
 #: :func:`pose_bound` enumerates with PnP; above it the linearised bound decides.
@@ -468,8 +468,8 @@ class HullPoseBound:
         whose pose, re-checked, leaves Ξ, else None.
 
         Over more combinations than are enumerated the regions are the bounds' looseness:
-        attacks on them found nothing on the quick T-local hulls and took ~90 s each
-        (docs/findings.md), so only enumerated regions are attacked."""
+        attacks on them found nothing on the quick T-local hulls and cost more than the
+        search, so only enumerated regions are attacked."""
         base = self._seed_argmax()
         targets = [np.stack([p[i] for p, i in zip(pixels, farthest)])]
         moves = single_moves(self.seed, pixels, base, self.factors, self.R, self.t, eps)

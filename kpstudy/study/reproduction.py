@@ -45,7 +45,7 @@ STAGES = ("data", "train", "notebooks", "report")
 FRIENDLY_MODEL = "cnn_patch_smooth"
 #: The verification-friendly CNN's recipe, first stage (``TrainConfig`` fields beside the
 #: profile's seed): natural epochs, then a forward-bound term over sub-hulls that grow to
-#: 5 % of the hulls' size (docs/findings.md says how it was chosen).
+#: 5 % of the hulls' size.
 FRIENDLY = dict(
     backbone=FRIENDLY_MODEL,
     epochs=20,
@@ -57,7 +57,7 @@ FRIENDLY = dict(
 )
 #: Its second stage, from the first stage's weights: the verifier's own zonotope over
 #: one sub-hull per batch growing from 10 % to 50 % of the hulls' size, the learning rate
-#: rising to 3e-4 and annealing (a constant rate costs PCK@2 0.03: docs/findings.md).
+#: rising to 3e-4 and annealing (a constant rate cost PCK@2 0.03).
 FRIENDLY_FINETUNE = dict(
     backbone=FRIENDLY_MODEL,
     epochs=2,
@@ -210,14 +210,14 @@ class Profile:
 
 
 #: The quick profile's pose-bound method in T-local per model: the paper's CNN with
-#: forward bounds on the root (its zonotope proves 3 of the 4 m = 2 hulls, but in 26-392 s
-#: each, and leaves seed 481's m = 2 hull open after 16 nodes in 84 s: docs/findings.md),
+#: forward bounds on the root (its zonotope proves most m = 2 hulls, but in minutes each,
+#: and leaves some open after 16 nodes),
 #: the verification-friendly CNN with the zonotope from the hull split ⌈1.75 m⌉ times (4, 6
 #: and 7 splits at m = 2, 3, 4: nodes of about a third of the hull per direction, where
 #: its hardest hulls close; a shallower start bounds the same number of deeper nodes after
 #: larger, costlier and undecisive ones), up to 768 nodes and then 64 aimed at the cells
-#: that keep an `unknown` open (seed 935's m = 4 hull takes about 610 nodes from any start
-#: depth from 6 to 8, every other one 280 or fewer: docs/findings.md). Node budgets give
+#: that keep an `unknown` open (the hardest quick hull takes about 610 nodes from any start
+#: depth from 6 to 8, every other one 280 or fewer). Node budgets give
 #: the same verdicts on any machine; the seconds only cap a slow one.
 LOCAL_POSE_BOUND = {
     "cnn": dict(pose_bound_method="forward", pose_bound_timeout=60.0, pose_bound_nodes=1),
