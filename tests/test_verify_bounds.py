@@ -193,18 +193,17 @@ def test_zonotope_stays_tight_where_forward_bounds_blow_up():
 def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
     from kpstudy.verify import bounds as B
     from kpstudy.verify.graph import trace
-    from kpstudy.verify.operators import interval
 
     def widths(net, hull, y):
         graph = trace(net, hull.vertices[:1])
-        region = B.root_region(hull, graph.dtype)
+        region = hull.region(hull.root(), graph.dtype)
         q, out = region.mid.shape[1], []
         for budget in (0, 5, None):
             stacks, _ = B.propagate(graph, region, zonotope=True, max_generators=budget)
             assert stacks.mid.shape[1] - q <= (
                 B.symbol_budget(graph, q) if budget is None else budget
             )
-            lo, hi = interval(stacks.mid, stacks.rad, q, "simplex")
+            lo, hi = stacks.bounds()
             slack = 1e-5 * (1 + y.abs().max())
             assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all(), budget
             out.append((hi - lo).mean().item())
@@ -255,7 +254,7 @@ def test_symbols_of_parallel_branches_stay_distinct():
     net = _TwoReluBranches().eval()
     hull = ConvexHull(torch.tensor([[-1.0], [1.0]]))
     graph = trace(net, hull.vertices[:1])
-    region = B.root_region(hull, graph.dtype)
+    region = hull.region(hull.root(), graph.dtype)
     with torch.no_grad():
         y = net(torch.linspace(-1, 1, 201)[:, None])
         true_min = (y[:, 1] - y[:, 0]).min()
@@ -275,7 +274,6 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     from kpstudy.verify import bounds as B
     from kpstudy.verify import symbols
     from kpstudy.verify.graph import trace
-    from kpstudy.verify.operators import interval
 
     if net_name == "local":
         net, shape = LocalNet(seed).double(), (2, 11, 9)
@@ -286,7 +284,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     hull = ConvexHull(hull_vertices(seed, 3, shape, spread=0.3, dtype=torch.float64))
     graph = trace(net, hull.vertices[:1])
     nodes = hull.split(hull.split(hull.root()))  # four regions in one batch
-    region = B.node_region(hull, nodes, graph.dtype)
+    region = hull.region(nodes, graph.dtype)
     with torch.no_grad():
         y = net(_sample_images(hull, seed))
         blocks, _ = B.propagate(graph, region, zonotope=True)
@@ -305,7 +303,7 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
         lows.append(B.zonotope_min(coeff, q, "simplex"))
     torch.testing.assert_close(lows[0], lows[1])
     torch.testing.assert_close(blocks.rad, dense.rad)
-    lo, hi = interval(blocks.mid, blocks.rad, q, "simplex")
+    lo, hi = blocks.bounds()
     assert (y >= lo.min(0).values - 1e-9).all() and (y <= hi.max(0).values + 1e-9).all()
 
 
@@ -322,7 +320,7 @@ def test_zonotope_bounds_have_the_gradient_of_their_finite_differences(net_name)
         net, shape = PoolProxy(1, dvs=((1, 1), (1, 2))).double(), (1, 10, 10)
     hull = ConvexHull(hull_vertices(1, 3, shape, spread=0.3, dtype=torch.float64))
     graph = trace(net, hull.vertices[:1], differentiable=True)
-    region = B.node_region(hull, hull.split(hull.root()), graph.dtype)
+    region = hull.region(hull.split(hull.root()), graph.dtype)
 
     def width():
         out, _ = B.propagate(graph, region, zonotope=True)
@@ -390,7 +388,7 @@ def test_a_patch_decoder_is_fused_into_one_exact_map_no_looser(seed, monkeypatch
         x = _sample_images(hull, seed)
         y = net(x)
         torch.testing.assert_close(graph.forward(x), y, rtol=1e-12, atol=1e-12)
-        region = B.node_region(hull, hull.root(), graph.dtype)
+        region = hull.region(hull.root(), graph.dtype)
         # A budget of a few symbols: the rest go to the radius, which the fused map keeps tight.
         lo, hi = B.propagate(graph, region, zonotope=True, max_generators=4)[0].bounds()
         monkeypatch.setattr(G, "_fuse_patch_chains", lambda nodes: nodes)
@@ -431,7 +429,7 @@ def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed, offsets, monkey
     net = PatchNet(seed).double()
     hull = ConvexHull(hull_vertices(seed, 3, (2, 8, 8), spread=0.5, dtype=torch.float64))
     graph = trace(net, hull.vertices[:1])
-    region = B.node_region(hull, hull.split(hull.split(hull.root())), graph.dtype)
+    region = hull.region(hull.split(hull.split(hull.root())), graph.dtype)
     with torch.no_grad():
         kept, _ = B.propagate(graph, region, zonotope=True, dense=False)
         dense, _ = B.propagate(graph, region, zonotope=True)
@@ -511,7 +509,7 @@ def test_a_smoothed_patch_decoder_traces_to_one_filtered_patch_map():
     assert kinds[-1] is FilteredPatchConvTranspose and kinds.count(kinds[-1]) == 1
     fused = graph.nodes[-1].op
     assert type(fused.patch) is PatchConvTranspose and fused.m.kernel_size == (6, 6)
-    region = B.node_region(hull, hull.root(), graph.dtype)
+    region = hull.region(hull.root(), graph.dtype)
     with torch.no_grad():
         z = torch.randn(5, *graph.nodes[-2].shape, dtype=torch.float64)
         pair = fused.filter.linear(fused.patch.linear(z))
@@ -548,7 +546,7 @@ def test_an_affine_tail_split_off_carries_the_heads_symbols_exactly(smooth):
     assert head.nodes[-1].op.kind == "relu" and len(tail.nodes) == 2
     assert trace(nn.Sequential(net, nn.ReLU()), hull.vertices[:1]).split_affine_tail() is None
     nodes = hull.split(hull.split(hull.root()))
-    region = B.node_region(hull, nodes, graph.dtype)
+    region = hull.region(nodes, graph.dtype)
     with torch.no_grad():
         whole = B.propagate(graph, region, zonotope=True, dense=False)[0]
         inner = B.propagate(head, region, zonotope=True, dense=False)[0]

@@ -1,4 +1,4 @@
-"""The operator registry: the documented "adding a layer" example run through every
+"""The operator registry: the documented "adding a layer" examples run through every
 method, unknown kinds refused, and the cell pool traced as one function."""
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ METHODS = ("ibp", "forward", "crown", "zonotope")
 
 @pytest.fixture
 def leaky(monkeypatch):
-    """Run the module docstring's example on copies of the two registries."""
+    """Run the module docstring's examples on copies of the two registries."""
     monkeypatch.setattr(operators, "RULES", dict(operators.RULES))
     monkeypatch.setattr(graph, "MODULES", dict(graph.MODULES))
     block = re.search(r"::\n\n(.*?)\n\n``tests/", operators.__doc__, re.S).group(1)
     names = {"ops": ops, "Rules": operators.Rules, "RULES": operators.RULES, "graph": graph}
-    names |= {"domain_min": operators.domain_min, "torch": torch, "nn": nn, "F": F}
+    names |= {"Region": operators.Region, "torch": torch, "nn": nn, "F": F}
     exec(textwrap.dedent(block), names)
     return names
 
@@ -49,13 +49,9 @@ class _LeakyNet(nn.Module):
         return self.fc(self.leaky(h).flatten(1))
 
 
-@pytest.mark.parametrize("c", [0.0, 0.1, 0.7])
-def test_the_documented_leaky_relu_bounds_its_samples_with_every_method(leaky, c):
-    net = _LeakyNet(seed=int(10 * c), c=c)
-    V = hull_vertices(1, 3, (2, 8, 8), spread=0.3)
+def _every_method_bounds_the_samples(net, V):
+    """Over the hull of ``V``, its parallelotope and its box."""
     for s in (ConvexHull(V), Parallelotope(V), Box(V.min(0).values, V.max(0).values)):
-        nodes = trace(net, V[:1]).nodes
-        assert [type(n.op).__name__ for n in nodes].count("LeakyReLU") == 2
         pts = s.sample(1000, 0) if isinstance(s, Box) else s.image(s.sample(1000, 0))
         with torch.no_grad():
             y = net(pts)
@@ -63,6 +59,15 @@ def test_the_documented_leaky_relu_bounds_its_samples_with_every_method(leaky, c
             lo, hi = output_bounds(net, s, method)
             slack = 1e-5 * (1 + y.abs().max())
             assert (y >= lo - slack).all() and (y <= hi + slack).all(), (type(s), method)
+
+
+@pytest.mark.parametrize("c", [0.0, 0.1, 0.7])
+def test_the_documented_leaky_relu_bounds_its_samples_with_every_method(leaky, c):
+    net = _LeakyNet(seed=int(10 * c), c=c)
+    V = hull_vertices(1, 3, (2, 8, 8), spread=0.3)
+    nodes = trace(net, V[:1]).nodes
+    assert [type(n.op).__name__ for n in nodes].count("LeakyReLU") == 2
+    _every_method_bounds_the_samples(net, V)
 
 
 @pytest.mark.parametrize("c", [0.0, 0.1, 0.7])
@@ -91,6 +96,47 @@ def test_a_leaky_relu_of_slope_zero_is_bounded_as_a_relu_is(leaky):
     leaky_net, relu_net = _LeakyNet(seed=0, c=0.0), _LeakyNet(seed=0, c=0.0)
     relu_net.leaky = nn.ReLU()
     for a, b in zip(output_bounds(leaky_net, box, "ibp"), output_bounds(relu_net, box, "ibp")):
+        torch.testing.assert_close(a, b)
+
+
+class _UpsampleNet(nn.Module):
+    def __init__(self, seed: int):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.conv1 = nn.Conv2d(2, 3, 3, padding=1)
+        self.up = nn.Upsample(scale_factor=2)
+        self.conv2 = nn.Conv2d(3, 2, 3, stride=2, padding=1)
+        self.fc = nn.Linear(2 * 6 * 5, 4)
+        self.eval()
+
+    def forward(self, x):
+        h = self.up(torch.relu(self.conv1(x)))
+        return self.fc(torch.relu(self.conv2(h)).flatten(1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_documented_upsampling_keeps_symbol_blocks_and_bounds_its_samples(
+    leaky, seed, monkeypatch
+):
+    """The affine example maps error-symbol windows itself: the zonotope with its blocks
+    has the dense stacks' bounds, and every method contains the samples."""
+    net = _UpsampleNet(seed)
+    V = hull_vertices(seed, 3, (2, 6, 5), spread=0.3)
+    up, calls = leaky["Upsample2"], []
+    original = up.map_window
+
+    def counted(self, *args):
+        calls.append(args)
+        return original(self, *args)
+
+    monkeypatch.setattr(up, "map_window", counted)
+    _every_method_bounds_the_samples(net, V)
+    assert calls  # the zonotope kept its symbols in blocks through the upsampling
+    hull = ConvexHull(V.double())
+    blocks = output_bounds(net.double(), hull, "zonotope")
+    monkeypatch.setattr(up, "local", False)
+    dense = output_bounds(net, hull, "zonotope")
+    for a, b in zip(blocks, dense):
         torch.testing.assert_close(a, b)
 
 

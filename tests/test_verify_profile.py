@@ -59,7 +59,7 @@ def test_crown_from_an_inner_node_equals_crown_on_the_truncated_network():
     results = []
     for model, start in ((net, 3), (head, -1)):
         graph = trace(model, hull.vertices[:1])
-        region = B.root_region(hull, graph.dtype)
+        region = hull.region(hull.root(), graph.dtype)
         with torch.no_grad():
             _, state = B.propagate(graph, region)
             results.append(

@@ -20,7 +20,7 @@ from functools import partial
 
 import torch
 
-from kpstudy.verify.bounds import METHODS, example_input, node_region, row_bounds
+from kpstudy.verify.bounds import METHODS, row_bounds
 from kpstudy.verify.graph import trace
 from kpstudy.verify.result import Counterexample, Result
 from kpstudy.verify.search import (
@@ -114,7 +114,7 @@ def verify(
     if not isinstance(spec, ArgmaxSpec):
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     _check_dtype(model, input_set)
-    graph = trace(model, example_input(input_set))
+    graph = trace(model, input_set.example_input())
     spec.check_output(graph.output_size)
     search = _Search(model, graph, input_set, spec, method, tol, memory, start + timeout)
     if batch is None:
@@ -236,7 +236,7 @@ class _Search:
         already), and whether each is proved: above ``tol``, or above zero in float64."""
         spec = self.spec
         rows = mask[:, spec.row_group].any(0)  # rows needed by some node of the batch
-        region = node_region(self.set, nodes, self.graph.dtype)
+        region = self.set.region(nodes, self.graph.dtype)
         lower = torch.full((len(nodes), spec.n_rows), float("inf"), dtype=torch.float64)
         if not rows.any():  # single-cell groups only: nothing to bound
             margin = lower.new_full(mask.shape, torch.inf)
@@ -273,10 +273,10 @@ class _Search:
     def _float64_proves(self, nodes, close) -> torch.Tensor:
         """Whether float64 bounds prove the groups with a close call ``(B, G)``."""
         if self.graph64 is None:
-            self.graph64 = trace(self._model64(), example_input(self.set).double())
+            self.graph64 = trace(self._model64(), self.set.example_input().double())
         which = close.any(1)
         self.rechecks += int(which.sum())
-        region = node_region(self.set, nodes[which], torch.float64)
+        region = self.set.region(nodes[which], torch.float64)
         spec = self.spec
         lower = row_bounds(
             self.graph64,
@@ -313,13 +313,7 @@ class _Search:
 
     def _descend(self, nodes, mask, steps):
         """Projected gradient descent on each node's worst open margin; returns points."""
-        B = len(nodes)
-        simplex = self.set.domain == "simplex"
-        if simplex:
-            w = torch.full((B, nodes.shape[1]), 1.0 / nodes.shape[1], dtype=torch.float64)
-        else:
-            shape = (B, *nodes.shape[2:])
-            w = torch.full(shape, 0.5, dtype=torch.float64)
+        w = self.set.centre_weights(nodes)
         rows = mask[:, self.spec.row_group]
         lr = 0.5
         for _ in range(steps):
@@ -333,7 +327,7 @@ class _Search:
             scale = grad.flatten(1).abs().amax(1).clamp_min(1e-30)
             step = grad / scale.reshape(-1, *([1] * (grad.ndim - 1)))
             w = w.detach() - lr * step
-            w = _project_simplex(w) if simplex else w.clamp(0.0, 1.0)
+            w = self.set.project_weights(w)
             lr *= 0.7
         return self.set.node_point(nodes, w.detach())
 
@@ -346,7 +340,7 @@ class _Search:
         point (:meth:`image` in float64) by a float64 copy of the model, and only that
         margin counts: a point that fails only on its float32-rounded image is no
         counterexample, and its group stays open for the search."""
-        points = self._into_set(points)
+        points = self.set.clip(points)
         inside = self.set.contains_point(points)
         x = self.set.image(points)
         y = self.model(x).flatten(1)
@@ -363,26 +357,3 @@ class _Search:
             if g not in found:
                 found[g] = Counterexample(points[i], x[i], g, float(margin[i, g]))
         return found
-
-    def _into_set(self, points):
-        """Points pulled exactly into the set (rounding can leave λ a hair outside)."""
-        if self.set.domain == "box":
-            return torch.minimum(torch.maximum(points, self.set.lower), self.set.upper)
-        lam = points.clamp_min(0.0)
-        if self.set.domain == "simplex":
-            total = lam.sum(-1, keepdim=True)
-            lam = torch.where(total > 1.0, lam / total, lam)
-            lam = torch.where(lam.sum(-1, keepdim=True) > 1.0, lam * (1 - 1e-12), lam)
-            return lam
-        return lam.clamp_max(1.0)
-
-
-def _project_simplex(w: torch.Tensor) -> torch.Tensor:
-    """Euclidean projection of each row of ``w (B, k)`` onto the probability simplex."""
-    u, _ = torch.sort(w, dim=1, descending=True)
-    css = u.cumsum(1) - 1.0
-    k = torch.arange(1, w.shape[1] + 1, dtype=w.dtype)
-    cond = u - css / k > 0
-    rho = cond.to(torch.int64).cumsum(1).argmax(1, keepdim=True)
-    theta = css.gather(1, rho) / (rho + 1).to(w.dtype)
-    return (w - theta).clamp_min(0.0)

@@ -1,14 +1,16 @@
 """Sound bounds of a traced network over an input set, in the set's few parameters.
 
-A batch of ``B`` regions (branch-and-bound nodes) enters as affine inputs
+A batch of ``B`` regions (branch-and-bound nodes, each input set's
+:meth:`~kpstudy.verify.sets.ConvexHull.region`) enters as affine inputs
 ``x = c + Σ_i θ_i G_i`` with ``θ`` in a *domain* — the standard simplex
 ``{θ ≥ 0, Σ θ ≤ 1}`` for a convex hull, the unit cube for a parallelotope — or, for a
 box, as an interval (no ``θ``). Every value of the network is then bounded by two affine
 functions of ``θ``, stored as coefficient stacks ``(B, q, *shape)`` (row 0 the constant,
 rows 1… the ``θ`` coefficients) in centre/radius form: lower ``mid − rad``, upper
-``mid + rad``. The minimum of ``a0 + a·θ`` is exact: ``a0 + min(0, min_i a_i)`` over the
-simplex, ``a0 + Σ_i min(0, a_i)`` over the cube. This module runs the passes; each
-operator's rules for every method are in :mod:`kpstudy.verify.operators`.
+``mid + rad`` (:class:`~kpstudy.verify.region.Region`). The minimum of ``a0 + a·θ`` is
+exact: ``a0 + min(0, min_i a_i)`` over the simplex, ``a0 + Σ_i min(0, a_i)`` over the
+cube. This module runs the passes; each operator's rules for every method are in
+:mod:`kpstudy.verify.operators`.
 
 Methods
 -------
@@ -49,9 +51,9 @@ import time
 
 import torch
 
-from kpstudy.verify import operators, symbols
+from kpstudy.verify import operators
 from kpstudy.verify.graph import Graph, trace
-from kpstudy.verify.operators import domain_min, symbol_reach
+from kpstudy.verify.region import Region, domain_min, symbol_reach
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 #: Elements a zonotope's centre stack may hold per region (symbols × the largest
@@ -68,80 +70,6 @@ def zonotope_min(a: torch.Tensor, q: int, domain: str) -> torch.Tensor:
 
 class BoundsTimeout(Exception):
     """A bound computation passed its ``deadline`` (between two layers)."""
-
-
-class Region:
-    """``B`` regions of a value: coefficient stacks ``mid``, ``rad`` ``(B, q, *S)`` and a
-    domain; a zonotope's error symbols either as rows of ``mid`` past ``q`` or, from
-    :func:`propagate` with ``dense=False``, as spatial ``blocks``
-    (:mod:`kpstudy.verify.symbols`, ``rows`` the dense stack's rows they number into)."""
-
-    def __init__(
-        self,
-        mid: torch.Tensor,
-        rad: torch.Tensor,
-        domain: str,
-        blocks: list | None = None,
-        rows: int | None = None,
-    ) -> None:
-        self.mid, self.rad, self.domain = mid, rad, domain
-        self.blocks, self.rows = blocks, rows
-
-    def reach(self) -> torch.Tensor | float:
-        """``Σ_e |coefficient of symbol e|`` per entry ``(B, *S)`` (0 without symbols)."""
-        if self.blocks is not None:
-            return symbols.reach(self.blocks, self.mid[:, 0])
-        q = self.rad.shape[1]
-        return symbols.l1_rows(self.mid[:, q:]) if self.mid.shape[1] > q else 0.0
-
-    def symbols_at(self, index: torch.Tensor) -> torch.Tensor:
-        """The error symbols' coefficients ``(B, E, n)`` on the flat entries ``index (n,)``."""
-        q = self.rad.shape[1]
-        if self.blocks is not None:
-            return symbols.gather(self.blocks, self.rows - q, q, self.mid, index)
-        return self.mid[:, q:].flatten(2).index_select(-1, index)
-
-    @classmethod
-    def affine(cls, coeff: torch.Tensor, domain: str) -> Region:
-        """Exact affine inputs ``coeff (B, q, *S)`` over ``domain``."""
-        return cls(coeff, torch.zeros_like(coeff), domain)
-
-    @classmethod
-    def interval(cls, lower: torch.Tensor, upper: torch.Tensor) -> Region:
-        """Boxes ``lower, upper (B, *S)``."""
-        return cls(((lower + upper) / 2)[:, None], ((upper - lower) / 2)[:, None], "point")
-
-    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Concrete lower and upper bounds ``(B, *S)`` over the domain; rows of ``mid``
-        past the ``q`` of ``rad`` are error-symbol coefficients (a zonotope), each symbol
-        in [−1, 1]."""
-        q = self.rad.shape[1]
-        spread = self.reach()
-        low = domain_min(self.mid[:, :q] - self.rad, self.domain) - spread
-        high = -domain_min(-(self.mid[:, :q] + self.rad), self.domain) + spread
-        return low, high
-
-    def without_symbols(self) -> Region:
-        """The same bounds with the error symbols' reach moved into the radius (sound;
-        what the symbols share is lost)."""
-        q = self.rad.shape[1]
-        rad = self.rad.clone()
-        rad[:, 0] += self.reach()
-        return Region(self.mid[:, :q], rad, self.domain)
-
-    def select(self, rows: torch.Tensor) -> Region:
-        """The regions ``rows`` (bool ``(B,)`` or indices) of the batch."""
-        blocks = self.blocks
-        if blocks is not None:
-            blocks = [symbols.Block(b.coeff[rows], b.start, b.y[rows], b.x[rows]) for b in blocks]
-        return Region(self.mid[rows], self.rad[rows], self.domain, blocks, self.rows)
-
-    def to_interval(self) -> Region:
-        return Region.interval(*self.bounds())
-
-    @property
-    def batch(self) -> int:
-        return self.mid.shape[0]
 
 
 def propagate(
@@ -164,8 +92,8 @@ def propagate(
     affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
     most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
     ``(B, q, *S)``. Inside, the symbols travel in spatial blocks where they can
-    (:mod:`kpstudy.verify.symbols`); what ``visit(i, mid, rad)`` (if given) sees of
-    every node is a dense stack, and so is the output unless ``dense`` is False: then an
+    (:mod:`kpstudy.verify.symbols`); what ``visit(i, value)`` (if given) sees of
+    every node is a dense :class:`Region`, and so is the output unless ``dense`` is False: then an
     output that holds its symbols in blocks keeps them (:attr:`Region.blocks`), for a
     caller that reads a few entries' symbols (:meth:`Region.symbols_at`) of an output
     whose dense stack (symbols × outputs) would dwarf the pass itself. A ``region`` that
@@ -179,31 +107,31 @@ def propagate(
     if max_generators is None:
         max_generators = symbol_budget(graph, q)
     p = operators.Pass(graph, q, region.domain, max_generators)
-    values: list[tuple | None] = [None] * len(graph.nodes)  # (mid, rad, blocks) per node
+    values: list[Region | None] = [None] * len(graph.nodes)
     if region.blocks is not None or region.mid.shape[1] > q:  # symbols of an earlier pass
         if not zonotope:
             raise ValueError("region: a region with error symbols needs zonotope=True")
         p.made = region.rows if region.blocks is not None else region.mid.shape[1]
-        values[0] = (region.mid, region.rad, region.blocks)
+        values[0] = region
     else:
-        values[0] = (region.mid, region.rad, [] if zonotope else None)
+        values[0] = Region(region.mid, region.rad, region.domain, [] if zonotope else None)
     remaining = [len(c) for c in graph.consumers]
     for i, node in enumerate(graph.nodes[1:], start=1):
         rule = operators.rules(node.op.kind)
         step = rule.zonotope if zonotope else rule.forward
         values[i] = step(p, i, [values[j] for j in node.inputs])
         if visit is not None:
-            visit(i, p.dense(values[i]), values[i][1])
+            visit(i, Region(p.dense(values[i]), values[i].rad, region.domain))
         if deadline is not None and time.perf_counter() > deadline:
             raise BoundsTimeout
         for j in node.inputs:
             remaining[j] -= 1
             if remaining[j] == 0 and j > 0:
                 values[j] = None
-    mid, rad, blocks = values[-1]
-    if blocks is not None and not dense:
-        return Region(mid, rad, region.domain, blocks, p.made), p.saved
-    return Region(p.dense(values[-1]), rad, region.domain), p.saved
+    out = values[-1]
+    if out.blocks is not None and not dense:
+        return Region(out.mid, out.rad, region.domain, out.blocks, p.made), p.saved
+    return Region(p.dense(out), out.rad, region.domain), p.saved
 
 
 def symbol_budget(graph: Graph, q: int) -> int:
@@ -329,8 +257,8 @@ def output_bounds(model, input_set, method: str = "forward") -> tuple[torch.Tens
     --------
     >>> lo, hi = output_bounds(net, ConvexHull(torch.stack([x0, x1])), "crown")  # doctest: +SKIP
     """
-    graph = trace(model, example_input(input_set))
-    region = root_region(input_set, graph.dtype)
+    graph = trace(model, input_set.example_input())
+    region = input_set.region(input_set.root(), graph.dtype)
     idx = torch.arange(graph.output_size)
     none = torch.full_like(idx, -1)
     with torch.no_grad():
@@ -338,23 +266,3 @@ def output_bounds(model, input_set, method: str = "forward") -> tuple[torch.Tens
         upper = -row_bounds(graph, region, none, idx, method)[0]
     shape = graph.nodes[-1].shape
     return lower.reshape(shape), upper.reshape(shape)
-
-
-def example_input(input_set) -> torch.Tensor:
-    """One point of the set as a model input ``(1, *S)`` (for tracing)."""
-    first = input_set.lower if input_set.domain == "box" else input_set.vertices[0]
-    return first[None]
-
-
-def root_region(input_set, dtype) -> Region:
-    """The whole input set as one region."""
-    return node_region(input_set, input_set.root(), dtype)
-
-
-def node_region(input_set, nodes: torch.Tensor, dtype) -> Region:
-    """Regions of ``B`` branch-and-bound nodes of ``input_set``."""
-    if input_set.domain == "box":
-        lower, upper = input_set.node_bounds(nodes, dtype)
-        return Region.interval(lower[:, 0], upper[:, 0])
-    coeff, domain = input_set.node_inputs(nodes, dtype)
-    return Region.affine(coeff, domain)

@@ -128,9 +128,9 @@ class Graph:
     def output_channels(self, channels: torch.Tensor) -> Graph | None:
         """The graph with its output node computing only channels ``channels`` (indices
         of a ``(C, H, W)`` output), or None where that node is not a convolution or
-        transposed convolution of one group (:func:`kpstudy.verify.ops.output_channels`)."""
+        transposed convolution of one group (:meth:`kpstudy.verify.ops.Op.output_channels`)."""
         last = self.nodes[-1]
-        op = ops.output_channels(last.op, channels) if len(last.shape) == 3 else None
+        op = last.op.output_channels(channels) if len(last.shape) == 3 else None
         if op is None:
             return None
         i = len(self.nodes) - 1
@@ -405,6 +405,6 @@ def _infer_shapes(nodes: list[Node], example: torch.Tensor, offsets: bool = True
                     )
             y = op.forward(*xs)
             node.shape = tuple(y.shape[1:])
-            if offsets and isinstance(operators.rules(op.kind), operators.Affine):
+            if offsets and isinstance(operators.rules(op.kind), operators.AffineRules):
                 node.offset = op.forward(*(torch.zeros_like(x) for x in xs))
             values.append(y)

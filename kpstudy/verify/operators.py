@@ -18,19 +18,22 @@ up ``RULES[node.op.kind]`` (:func:`rules`) for every node of a traced graph and 
     Extra columns of :func:`kpstudy.verify.profile.bound_profile` from the input's
     bounds and sampled range (the ReLU: unstable neurons).
 
-A value is ``(mid, rad, blocks)``: coefficient stacks ``mid (B, rows, *S)``, ``rad (B,
-q, *S)`` (lower ``mid − rad``, upper ``mid + rad``, row 0 the constant, rows ``1 … q−1``
-the ``θ`` coefficients, rows from ``q`` on error symbols), and, inside a zonotope pass,
-``blocks`` (a list of :class:`kpstudy.verify.symbols.Block`) holding the symbols while
-``mid`` holds the ``θ`` rows only; ``blocks`` is ``None`` when ``mid`` is dense.
-Affine operators (:mod:`kpstudy.verify.ops`) share one rule, :class:`Affine`, derived
-from their three maps.
+A value is a :class:`~kpstudy.verify.region.Region`: coefficient stacks ``mid (B, rows,
+*S)``, ``rad (B, q, *S)`` (lower ``mid − rad``, upper ``mid + rad``, row 0 the constant,
+rows ``1 … q−1`` the ``θ`` coefficients, rows from ``q`` on error symbols), and, inside a
+zonotope pass, ``blocks`` (a list of :class:`kpstudy.verify.symbols.Block`) holding the
+symbols while ``mid`` holds the ``θ`` rows only; ``blocks`` is ``None`` when ``mid`` is
+dense. Affine operators (:mod:`kpstudy.verify.ops`) share one rule, :class:`AffineRules`,
+derived from their three maps; each says itself how symbol blocks go through it.
 
 Adding a layer
 --------------
 1. The operator: an :class:`kpstudy.verify.ops.Op` with its concrete ``forward`` and a
-   ``kind``. An affine layer gives ``linear``/``abs_linear`` too, keeps
-   ``kind = 'affine'``, and is done after step 3.
+   ``kind``. An affine layer gives ``linear``/``abs_linear`` too (by default ``forward``
+   and ``linear``: a map without bias and with weights ≥ 0 needs neither), keeps
+   ``kind = 'affine'``, and is done after step 3; if it maps each error symbol's window
+   to a window, it says so (``local``) and how (``map_window``), and a zonotope's
+   symbols stay in blocks through it.
 2. Its rules: a :class:`Rules` subclass with ``forward`` and ``backward`` (and
    ``zonotope``, ``profile`` where the defaults do not fit), registered as
    ``RULES[kind] = MyRules()``. Every bound must contain every value the layer takes on
@@ -38,9 +41,11 @@ Adding a layer
 3. Tracing: ``kpstudy.verify.graph.MODULES[MyModule] = lambda m: MyOp(...)`` (or a case
    in ``graph._operator`` for a function).
 
-For example, a leaky ReLU ``y = max(x, c·x)`` (``0 ≤ c ≤ 1``) between bounds ``l, u`` is
-the identity where ``l ≥ 0``, ``c·x`` where ``u ≤ 0`` and otherwise lies between the
-line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = (c − s)·l``)::
+No other module changes. For example, a leaky ReLU ``y = max(x, c·x)`` (``0 ≤ c ≤ 1``)
+between bounds ``l, u`` is the identity where ``l ≥ 0``, ``c·x`` where ``u ≤ 0`` and
+otherwise lies between the line ``c·x`` and the chord ``s·x + t``
+(``s = (u − c·l)/(u − l)``, ``t = (c − s)·l``); a nearest-neighbour upsampling by two is
+linear with weights ≥ 0 and maps a window to one of twice its size at twice its corner::
 
     class LeakyReLU(ops.Op):
         kind = "leaky_relu"
@@ -49,9 +54,8 @@ line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = 
 
     class LeakyReLURules(Rules):
         def forward(self, p, i, ins):
-            mid, rad, _ = ins[0]
-            low, up = mid - rad, mid + rad
-            l, u = domain_min(low, p.domain), -domain_min(-up, p.domain)
+            low, up = ins[0].mid - ins[0].rad, ins[0].mid + ins[0].rad
+            l, u = ins[0].bounds()
             c = p.graph.nodes[i].op.c
             lo_slope = torch.where(l >= 0, 1.0, torch.full_like(l, c))
             s = torch.where(u <= 0, c, (u - c * l) / (u - l).clamp_min(1e-30))
@@ -60,7 +64,7 @@ line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = 
             p.saved[i] = (lo_slope, s, t)
             new_low, new_up = lo_slope[:, None] * low, s[:, None] * up
             new_up[:, 0] += t
-            return (new_up + new_low) / 2, (new_up - new_low) / 2, None
+            return Region.between(new_low, new_up, p.domain)
         def backward(self, graph, i, a, saved):
             lo_slope, s, t = saved
             a_pos, a_neg = a.clamp_min(0), a.clamp_max(0)
@@ -70,7 +74,14 @@ line ``c·x`` and the chord ``s·x + t`` (``s = (u − c·l)/(u − l)``, ``t = 
     RULES["leaky_relu"] = LeakyReLURules()
     graph.MODULES[nn.LeakyReLU] = lambda m: LeakyReLU(m.negative_slope)
 
-``tests/test_verify_operators.py`` runs this example through every method.
+    class Upsample2(ops.Op):
+        local = True
+        def forward(self, x): return F.interpolate(x, scale_factor=2.0, mode="nearest")
+        def map_window(self, x, y, x0, out_hw): return self.forward(x), 2 * y, 2 * x0
+
+    graph.MODULES[nn.Upsample] = lambda m: Upsample2()
+
+``tests/test_verify_operators.py`` runs these examples through every method.
 """
 
 from __future__ import annotations
@@ -81,32 +92,7 @@ import torch
 import torch.nn.functional as F
 
 from kpstudy.verify import ops, symbols
-
-
-def domain_min(a: torch.Tensor, domain: str) -> torch.Tensor:
-    """Exact minimum over ``θ`` of ``a[:, 0] + Σ_i a[:, i] θ_i`` for ``a (B, q, …)``."""
-    if a.shape[1] == 1 or domain == "point":
-        return a[:, 0]
-    rest = a[:, 1:]
-    if domain == "simplex":
-        return a[:, 0] + rest.min(1).values.clamp_max(0.0)
-    if domain == "cube":
-        return a[:, 0] + rest.clamp_max(0.0).sum(1)
-    raise ValueError(f"domain: expected 'simplex', 'cube' or 'point', got {domain!r}")
-
-
-def symbol_reach(a: torch.Tensor, q: int):
-    """``Σ_e |a[:, q + e]|``: how far the error symbols move each entry (0 without any)."""
-    return symbols.l1_rows(a[:, q:]) if a.shape[1] > q else 0.0
-
-
-def interval(mid, rad, q, domain):
-    """Concrete lower and upper bounds ``(B, *S)`` of a dense value ``mid (B, q + E, *S)``,
-    ``rad (B, q, *S)``."""
-    reach = symbol_reach(mid, q)  # the same either way
-    low = domain_min(mid[:, :q] - rad, domain) - reach
-    high = -domain_min(-mid[:, :q] - rad, domain) + reach
-    return low, high
+from kpstudy.verify.region import Region, domain_min
 
 
 class Pass:
@@ -134,10 +120,15 @@ class Pass:
         self.made = q
         self.saved: dict[int, tuple] = {}
 
-    def dense(self, value) -> torch.Tensor:
+    def dense(self, value: Region) -> torch.Tensor:
         """The dense stack ``(B, rows, *S)`` of a value."""
-        mid, _, blocks = value
-        return mid if blocks is None else symbols.dense(mid, blocks, self.made)
+        if value.blocks is None:
+            return value.mid
+        return symbols.dense(value.mid, value.blocks, self.made)
+
+    def without_symbols(self, value: Region) -> Region:
+        """A value's ``θ`` rows, its symbols' reach added to the radius."""
+        return Region(self.dense(value), value.rad, self.domain).without_symbols()
 
 
 class Rules(ABC):
@@ -148,14 +139,14 @@ class Rules(ABC):
     makes_symbols = False
 
     @abstractmethod
-    def forward(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
+    def forward(self, p: Pass, i: int, ins: list[Region]) -> Region:
         """Node ``i``'s value from its inputs' values ``ins`` (interval, forward and
         ``ibp`` passes)."""
 
-    def zonotope(self, p: Pass, i: int, ins: list[tuple]) -> tuple:
+    def zonotope(self, p: Pass, i: int, ins: list[Region]) -> Region:
         """``forward`` with each input's error symbols moved into its radius (sound; what
         the symbols share is lost at this node)."""
-        return self.forward(p, i, [_without_symbols(p, v) for v in ins])
+        return self.forward(p, i, [p.without_symbols(v) for v in ins])
 
     @abstractmethod
     def backward(self, graph, i: int, a: torch.Tensor, saved) -> tuple[list, torch.Tensor]:
@@ -166,29 +157,33 @@ class Rules(ABC):
         return {}
 
 
-class Affine(Rules):
-    """Every affine operator, from its maps (:mod:`kpstudy.verify.ops`): exact."""
+class AffineRules(Rules):
+    """Every affine operator, from its maps (:mod:`kpstudy.verify.ops`): exact. A
+    zonotope's symbol blocks go through the operators that map them
+    (:attr:`~kpstudy.verify.ops.Op.local`, :meth:`~kpstudy.verify.ops.Op.map_window`);
+    one that reads them itself (:meth:`~kpstudy.verify.ops.Op.read_blocks`, the cell
+    pool) gives the dense stack of its output; any other reads the dense stack."""
 
     def forward(self, p, i, ins):
         node = p.graph.nodes[i]
         op = node.op
         in_shapes = [p.graph.nodes[j].shape for j in node.inputs]
-        B = ins[0][0].shape[0]
-        local = all(v[2] is not None for v in ins) and symbols.is_local(op, in_shapes, node.shape)
-        if ins[0][2] is not None and isinstance(op, ops.CellPool):
-            mid = symbols.cell_pool(op, ins[0][0], ins[0][2], p.made)
-        else:
-            mids = [v[0] for v in ins] if local else [p.dense(v) for v in ins]
+        B = ins[0].batch
+        blocked = all(v.blocks is not None for v in ins)
+        local = blocked and symbols.is_local(op, in_shapes, node.shape)
+        mid = op.read_blocks(ins[0].mid, ins[0].blocks, p.made) if blocked else None
+        if mid is None:
+            mids = [v.mid for v in ins] if local else [p.dense(v) for v in ins]
             rows = max(m.shape[1] for m in mids)  # symbols made after an input are 0
             mid = _apply(op.linear, [_pad_rows(m, rows) for m in mids], B, rows)
-        rad = _apply(op.abs_linear, [v[1] for v in ins], B, p.q)
+        rad = _apply(op.abs_linear, [v.rad for v in ins], B, p.q)
         mid = _add_offset(mid, p.graph.offset(i)[0])
         blocks = None
         if local and len(ins) == 1:
-            blocks = symbols.apply(op, ins[0][2], node.shape)
+            blocks = symbols.apply(op, ins[0].blocks, node.shape)
         elif local:
-            blocks = symbols.combine(op, [v[2] for v in ins], in_shapes)
-        return mid, rad, blocks
+            blocks = symbols.combine(op, [v.blocks for v in ins], in_shapes)
+        return Region(mid, rad, p.domain, blocks)
 
     zonotope = forward  # blocks pass through convolutions and the cell pool
 
@@ -200,7 +195,7 @@ class Affine(Rules):
         return grads, const
 
 
-class ReLU(Rules):
+class ReLURules(Rules):
     """``forward``: the triangle relaxation (lower slope 0 or 1, whichever leaves the
     smaller area; upper the chord). ``zonotope``: DeepZ, ``s·x + μ + μ·ε`` with one new
     symbol ``ε`` per unstable neuron (``s = u/(u − l)``, ``μ = −s·l/2``); past
@@ -209,7 +204,7 @@ class ReLU(Rules):
     makes_symbols = True
 
     def forward(self, p, i, ins):
-        mid, rad, _ = ins[0]
+        mid, rad = ins[0].mid, ins[0].rad
         low, up = mid - rad, mid + rad
         l = domain_min(low, p.domain)
         u = -domain_min(-up, p.domain)
@@ -224,14 +219,14 @@ class ReLU(Rules):
         p.saved[i] = (alpha, s, offset)
         new_low, new_up = alpha[:, None] * low, s[:, None] * up
         new_up[:, 0] += offset
-        return (new_up + new_low) / 2, (new_up - new_low) / 2, None
+        return Region.between(new_low, new_up, p.domain)
 
     def zonotope(self, p, i, ins):
-        if ins[0][2] is not None:
-            return self._blocks(p, i, *ins[0])
-        mid = _pad_rows(ins[0][0], p.made)  # new symbols are numbered after all others
-        value = self._dense(p, i, mid, ins[0][1])
-        p.made = value[0].shape[1]
+        if ins[0].blocks is not None:
+            return self._blocks(p, i, ins[0])
+        mid = _pad_rows(ins[0].mid, p.made)  # new symbols are numbered after all others
+        value = self._dense(p, i, Region(mid, ins[0].rad, p.domain))
+        p.made = value.mid.shape[1]
         return value
 
     def backward(self, graph, i, a, saved):
@@ -258,10 +253,10 @@ class ReLU(Rules):
         p.saved[i] = (alpha, s, 2 * mu)
         return s, mu
 
-    def _dense(self, p, i, mid, rad):
+    def _dense(self, p, i, x):
         """DeepZ on a dense stack: ``s·x + μ + μ·ε_new`` per unstable ReLU."""
-        q = p.q
-        l, u = interval(mid, rad, q, p.domain)
+        q, mid, rad = p.q, x.mid, x.rad
+        l, u = x.bounds()
         s, mu = self._deepz(p, i, l, u)
         B, rows = mid.shape[:2]
         flat_mu = mu.reshape(B, -1)
@@ -275,14 +270,13 @@ class ReLU(Rules):
         new.scatter_(2, order[:, :, None], flat_mu.gather(1, order)[:, :, None])
         new_rad = s[:, None] * rad
         new_rad[:, 0] += flat_mu.scatter(1, order, 0.0).reshape(mu.shape)  # the rest: radius
-        return out, new_rad, None
+        return Region(out, new_rad, p.domain)
 
-    def _blocks(self, p, i, mid, rad, blocks):
+    def _blocks(self, p, i, x):
         """DeepZ on a value whose symbols are in blocks (:mod:`symbols`): the old symbols
         are scaled by the slopes, the new ones make one block."""
-        reach = symbols.reach(blocks, mid[:, 0])
-        l = domain_min(mid - rad, p.domain) - reach
-        u = -domain_min(-mid - rad, p.domain) + reach
+        mid, rad = x.mid, x.rad
+        l, u = x.bounds()
         s, mu = self._deepz(p, i, l, u)
         B = mid.shape[0]
         flat_mu = mu.reshape(B, -1)
@@ -301,10 +295,10 @@ class ReLU(Rules):
         new_rad = s[:, None] * rad
         new_rad[:, 0] += (flat_mu - kept).view_as(mu)  # the rest: radius
         p.made += rows
-        return new_mid, new_rad, symbols.scale(blocks, s) + new
+        return Region(new_mid, new_rad, p.domain, symbols.scale(x.blocks, s) + new)
 
 
-class MaxPool(Rules):
+class MaxPoolRules(Rules):
     """Decided windows (largest lower bound ≥ every other upper bound) pass their
     largest-lower-bound input; undecided ones are bounded below by it and above by the
     window's largest upper bound (with error symbols, the interval between its concrete
@@ -312,10 +306,10 @@ class MaxPool(Rules):
 
     def forward(self, p, i, ins):
         op = p.graph.nodes[i].op
-        mid, rad, _ = ins[0]
+        mid, rad = ins[0].mid, ins[0].rad
         q = p.q
         B, rows, C, H, W = mid.shape
-        l, u = interval(mid, rad, q, p.domain)
+        l, u = ins[0].bounds()
         lw, uw = _windows(op, l, float("-inf")), _windows(op, u, float("-inf"))  # (B, C, k, L)
         best = lw.argmax(2, keepdim=True)
         l_best = lw.gather(2, best)
@@ -342,10 +336,11 @@ class MaxPool(Rules):
             new_mid[:, 0] += torch.where(decided, zero, (l_best + u_max) / 2)
             new_rad[:, 0] += torch.where(decided, zero, (u_max - l_best) / 2)
         p.saved[i] = (best[:, :, 0], decided, torch.where(decided, zero, u_max), (H, W))
-        return new_mid.reshape(B, rows, C, Ho, Wo), new_rad.reshape(B, q, C, Ho, Wo), None
+        out_mid, out_rad = new_mid.reshape(B, rows, C, Ho, Wo), new_rad.reshape(B, q, C, Ho, Wo)
+        return Region(out_mid, out_rad, p.domain)
 
     def zonotope(self, p, i, ins):
-        return self.forward(p, i, [(p.dense(ins[0]), ins[0][1], None)])
+        return self.forward(p, i, [Region(p.dense(ins[0]), ins[0].rad, p.domain)])
 
     def backward(self, graph, i, a, saved):
         """Lower ``y ≥ x[best]``; upper ``y ≤ x[best]`` where decided, else ``y ≤ max u``."""
@@ -369,7 +364,7 @@ class MaxPool(Rules):
 
 
 #: Operator kind (:attr:`kpstudy.verify.ops.Op.kind`) → its bound rules.
-RULES: dict[str, Rules] = {"affine": Affine(), "relu": ReLU(), "maxpool": MaxPool()}
+RULES: dict[str, Rules] = {"affine": AffineRules(), "relu": ReLURules(), "maxpool": MaxPoolRules()}
 
 
 def rules(kind: str) -> Rules:
@@ -392,14 +387,6 @@ def _windows(op: ops.MaxPool, x, fill: float):
 def _out_size(op: ops.MaxPool, h: int, w: int) -> tuple[int, int]:
     (kh, kw), (sh, sw), (ph, pw) = op.kernel, op.stride, op.padding
     return (h + 2 * ph - kh) // sh + 1, (w + 2 * pw - kw) // sw + 1
-
-
-def _without_symbols(p: Pass, value) -> tuple:
-    """A value's ``θ`` rows, its symbols' reach added to the radius."""
-    mid = p.dense(value)
-    rad = value[1].clone()
-    rad[:, 0] += symbol_reach(mid, p.q)
-    return mid[:, : p.q], rad, None
 
 
 def _add_offset(mid: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:

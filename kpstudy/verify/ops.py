@@ -25,13 +25,23 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from kpstudy.verify import symbols
+
 
 class Op:
     """A graph operator. ``kind`` names its bound rules in
-    :data:`kpstudy.verify.operators.RULES` (``'affine'``, ``'relu'``, ``'maxpool'``)."""
+    :data:`kpstudy.verify.operators.RULES` (``'affine'``, ``'relu'``, ``'maxpool'``).
+
+    An affine operator also says how a zonotope's error symbols, held in spatial blocks
+    (:mod:`kpstudy.verify.symbols`), go through it: :attr:`local` and
+    :meth:`map_window`, or :meth:`read_blocks`; by default it reads the dense stack."""
 
     kind = "affine"
     n_inputs = 1
+    #: Whether ``linear`` maps each symbol's window of a ``(C, H, W)`` input to a window
+    #: of the output: by :meth:`map_window`, or for several inputs by ``linear`` of the
+    #: inputs' windows placed on their union.
+    local = False
 
     def forward(self, *xs):
         raise NotImplementedError
@@ -41,6 +51,24 @@ class Op:
 
     def abs_linear(self, *xs):
         return self.linear(*xs)
+
+    def map_window(self, x, y, x0, out_hw):
+        """``linear`` of windows ``x (N, C, h, w)`` at corners ``y, x0 (N,)`` of a local
+        one-input operator: the output windows, inside an ``out_hw`` map, and their
+        corners. By default each window maps on its own, at its corner (a per-channel
+        map, a channel slice)."""
+        return self.linear(x), y, x0
+
+    def read_blocks(self, mid, blocks, rows):
+        """The dense stack ``(B, rows, *S_out)`` of ``linear`` of a value held as ``θ``
+        rows ``mid`` and symbol ``blocks``, for an operator that reads the blocks itself;
+        None (the default) where it reads the value's dense stack."""
+        return None
+
+    def output_channels(self, channels: torch.Tensor) -> Op | None:
+        """The operator computing its output channels ``channels`` (indices) alone, or
+        None where it cannot (the default)."""
+        return None
 
     def to(self, dtype) -> Op:
         return self
@@ -70,32 +98,47 @@ class _Weighted(Op):
 
 
 class Conv(_Weighted):
+    local = True
+
     def _map(self, x, w):
         m = self.m
         return F.conv2d(x, w, None, m.stride, m.padding, m.dilation, m.groups)
 
+    def map_window(self, x, y, x0, out_hw):
+        return symbols.conv_windows(self.m, x, y, x0, out_hw)
+
+    def output_channels(self, channels):
+        return _channels(self, channels, 0, _ConvChannels)
+
 
 class ConvTranspose(_Weighted):
+    local = True
+
     def _map(self, x, w):
         m = self.m
         return F.conv_transpose2d(
             x, w, None, m.stride, m.padding, m.output_padding, m.groups, m.dilation
         )
 
+    def map_window(self, x, y, x0, out_hw):
+        return symbols.conv_transpose_windows(self.m, x, y, x0, out_hw)
 
-def output_channels(op: Op, channels: torch.Tensor) -> Op | None:
-    """``op``'s output channels ``channels`` (indices) alone: a convolution or transposed
-    convolution (``groups = 1``) holding only their weights, whose :meth:`forward` is
-    ``op``'s own sliced (biases stay exact); None for any other operator."""
-    if not isinstance(op, (Conv, ConvTranspose)) or op.m.groups != 1:
-        return None
+    def output_channels(self, channels):
+        return _channels(self, channels, 1, _ConvTransposeChannels)
+
+
+def _channels(op: Conv | ConvTranspose, channels: torch.Tensor, dim: int, cls) -> Op | None:
+    """``op``'s output channels ``channels`` alone (its weight's ``dim``): a ``cls``
+    holding only their weights, whose :meth:`forward` is ``op``'s own sliced (biases stay
+    exact); None where ``op`` has groups."""
     m = op.m
-    transposed = isinstance(op, ConvTranspose)
-    weight = m.weight.detach()[:, channels] if transposed else m.weight.detach()[channels]
+    if m.groups != 1:
+        return None
     module = copy.copy(m)  # the same geometry, its own weight, no bias
+    weight = m.weight.detach()[(slice(None),) * dim + (channels,)]
     module._parameters = {"weight": nn.Parameter(weight, requires_grad=False), "bias": None}
     module.out_channels = len(channels)
-    return (_ConvTransposeChannels if transposed else _ConvChannels)(module, op, channels)
+    return cls(module, op, channels)
 
 
 class _Channels:
@@ -186,6 +229,8 @@ class Dense(_Weighted):
 class BatchNorm(Op):
     """Eval-mode batch norm: the per-channel affine map ``x·s + (β − μ s)``."""
 
+    local = True
+
     def __init__(self, m: nn.BatchNorm2d):
         if m.training or m.running_mean is None:
             raise ValueError(
@@ -255,6 +300,9 @@ class CellPool(Op):
     def forward(self, x):
         return cell_pool(x, self.pad, self.kernel_size, self.scale)
 
+    def read_blocks(self, mid, blocks, rows):
+        return symbols.cell_pool(self, mid, blocks, rows)  # each window pooled on its own
+
 
 class Flatten(Op):
     def __init__(self, start_dim: int, end_dim: int):
@@ -266,6 +314,7 @@ class Flatten(Op):
 
 class Add(Op):
     n_inputs = 2
+    local = True
 
     def forward(self, x, y):
         return x + y
@@ -275,6 +324,10 @@ class Cat(Op):
     def __init__(self, n_inputs: int, dim: int):
         self.n_inputs, self.dim = n_inputs, dim
 
+    @property
+    def local(self) -> bool:  # a channel concatenation
+        return self.dim in (1, -3)
+
     def forward(self, *xs):
         return torch.cat(xs, self.dim)
 
@@ -283,11 +336,20 @@ class Slice(Op):
     def __init__(self, index: tuple):
         self.index = index
 
+    @property
+    def local(self) -> bool:  # channels only
+        idx = self.index
+        return (len(idx) < 2 or isinstance(idx[1], slice)) and all(
+            i == slice(None) for i in idx[2:]
+        )
+
     def forward(self, x):
         return x[self.index]
 
 
 class Identity(Op):
+    local = True
+
     def forward(self, x):
         return x
 

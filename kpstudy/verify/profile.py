@@ -96,7 +96,7 @@ def bound_profile(
     if depth and crown_rows:
         raise ValueError(f"crown_rows: expected 0 with depth {depth}, got {crown_rows}")
     _checks.integer(chunk, "chunk", minimum=1)
-    graph = trace(model, _bounds.example_input(input_set))
+    graph = trace(model, input_set.example_input())
     extra = max(1, samples // 4)
     points = [input_set.sample(samples, seed)]
     points += [
@@ -116,14 +116,13 @@ def bound_profile(
         high_b[i] = high if i not in high_b else torch.maximum(high_b[i], high)
 
     for node in nodes.split(1):
-        region = _bounds.node_region(input_set, node, graph.dtype)
+        region = input_set.region(node, graph.dtype)
         if method == "ibp":
             region = region.to_interval()
         union(0, *(b[0] for b in region.bounds()))
-        q = region.mid.shape[1]
 
-        def keep(i, mid, rad, q=q, domain=region.domain):
-            low, high = operators.interval(mid, rad, q, domain)
+        def keep(i, value):
+            low, high = value.bounds()
             union(i, low[0], high[0])
 
         with torch.no_grad():
@@ -153,7 +152,7 @@ def bound_profile(
         rule = operators.rules(node.op.kind)
         j = node.inputs[0]
         row.update(rule.profile(low_b[j], high_b[j], low_s[j], high_s[j]))
-        if isinstance(rule, operators.Affine) and crown_rows and row["varying"]:
+        if isinstance(rule, operators.AffineRules) and crown_rows and row["varying"]:
             where = torch.nonzero(varying.flatten()).flatten()
             pick = where[torch.randperm(len(where), generator=g)[:crown_rows]]
             none = torch.full_like(pick, -1)

@@ -33,8 +33,9 @@ import numpy as np
 import torch
 
 from kpstudy import _checks
-from kpstudy.verify.bounds import domain_min, example_input, node_region, propagate
+from kpstudy.verify.bounds import propagate
 from kpstudy.verify.graph import trace
+from kpstudy.verify.region import domain_min
 from kpstudy.verify.search import (
     Step,
     absolute_tol,
@@ -42,6 +43,7 @@ from kpstudy.verify.search import (
     check_budget,
     default_batch,
 )
+from kpstudy.verify.sets import ConvexHull
 from kpstudy.verify.symbols import l1_rows
 
 METHODS = ("ibp", "forward", "zonotope")
@@ -211,7 +213,7 @@ def reachable_argmax(
     """
     start = time.perf_counter()
     check_search(method, timeout, max_nodes, start_depth, batch)
-    if input_set.domain not in ("simplex", "cube"):
+    if not isinstance(input_set, ConvexHull):  # or a Parallelotope: points are λ
         raise ValueError(
             f"input_set: expected a ConvexHull or Parallelotope, got {type(input_set).__name__}"
         )
@@ -222,7 +224,7 @@ def reachable_argmax(
         raise ValueError(f"group_sizes: expected integers >= 1, got {list(group_sizes)!r}")
     if witnesses is not None:
         check_witnesses(witnesses, sizes, input_set.n)
-    graph = trace(model, example_input(input_set))
+    graph = trace(model, input_set.example_input())
     if graph.output_size != sum(sizes):
         raise ValueError(
             f"group_sizes: expected them to sum to the model's {graph.output_size} outputs, "
@@ -413,7 +415,7 @@ class _Reach:
         index without a witness is closed on those bounds (the indices it keeps are
         reached, so the possible sets are the same), and only the others carry their
         symbols through the tail to the exact test."""
-        region = node_region(self.set, nodes, self.graph.dtype)
+        region = self.set.region(nodes, self.graph.dtype)
         if self.method == "ibp":
             region = region.to_interval()
         zonotope = self.method == "zonotope"

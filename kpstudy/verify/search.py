@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 
 from kpstudy import _checks
-from kpstudy.verify.bounds import BoundsTimeout, example_input, symbol_budget
+from kpstudy.verify.bounds import BoundsTimeout, symbol_budget
 
 
 class Step(NamedTuple):
@@ -135,7 +135,7 @@ def default_batch(graph, input_set, zonotope: bool, memory: int, widest: int = 0
     """Nodes bounded together: as many as keep the largest bound tensor (centre and radius
     coefficient stacks of the largest value, counting a zonotope's error symbols, or
     ``widest`` elements per row if larger) within ``memory`` elements, at most 64."""
-    rows = input_set.n + 1 if input_set.domain != "box" else 1
+    rows = input_set.rows
     if zonotope:
         rows += symbol_budget(graph, rows)
     biggest = max(widest, *(math.prod(n.shape) for n in graph.nodes))
@@ -146,7 +146,7 @@ def absolute_tol(graph, input_set, tol: float) -> float:
     """``tol · (1 + max |y(X0)|)``: a margin tolerance that scales with the outputs'
     magnitude at the set's first point, as float32 rounding does."""
     with torch.no_grad():
-        y0 = graph.forward(example_input(input_set).to(graph.dtype))
+        y0 = graph.forward(input_set.example_input().to(graph.dtype))
     return tol * (1.0 + float(y0.abs().max()))
 
 

@@ -9,8 +9,22 @@ ModelVerification.jl treats a hull: a superset with ``n!`` times the volume); a
 
 Branch and bound works on *nodes*: a sub-simplex (its ``n + 1`` vertices in λ), a
 sub-cube (``lo, hi`` in λ) or a sub-box (``lower, upper`` images). The bound engine only
-needs each node's affine input ``x = c + Σ_i θ_i G_i`` over a domain (``'simplex'`` or
-``'cube'``) — :meth:`node_inputs` — or, for a box, its interval.
+needs each node's :class:`~kpstudy.verify.region.Region`: its affine input
+``x = c + Σ_i θ_i G_i`` over a domain (``'simplex'`` or ``'cube'``) or, for a box, its
+interval.
+
+A set type is one class, which gives what the verifier asks of a set (besides its
+``dtype`` and ``n``, the parameters of a point):
+
+* ``example_input()``, a model input ``(1, *S)`` (to trace the model), and ``rows``, the
+  coefficient rows ``q`` of its regions (to size a batch);
+* ``root()``, ``split(nodes)`` and ``region(nodes, dtype)``: the nodes of branch and
+  bound and what the bound engine starts from;
+* ``node_points(nodes)``, the points an attack tries first, and for its gradient descent
+  ``centre_weights(nodes)``, ``node_point(nodes, weights)`` and ``project_weights(w)``:
+  each node's points as weights within it;
+* ``image(points)``, ``contains_point(points)`` and ``clip(points)`` (a point pulled into
+  the set where rounding left it a hair outside), ``contains(image)``, ``sample(…)``.
 """
 
 from __future__ import annotations
@@ -18,6 +32,8 @@ from __future__ import annotations
 import math
 
 import torch
+
+from kpstudy.verify.region import Region
 
 
 class ConvexHull:
@@ -38,6 +54,7 @@ class ConvexHull:
     tensor([2., 2.])
     """
 
+    #: The domain of λ in its regions (:func:`~kpstudy.verify.region.domain_min`).
     domain = "simplex"
 
     def __init__(self, vertices) -> None:
@@ -64,6 +81,15 @@ class ConvexHull:
         self.directions = v64[1:] - v64[:1]  # D, (n, *S), float64
         flat = self.directions.reshape(self.n, -1)
         self.gram = flat @ flat.T  # DᵀD, (n, n): image-space lengths of λ-space edges
+
+    @property
+    def rows(self) -> int:
+        """Coefficient rows of a region: the constant and one per parameter."""
+        return self.n + 1
+
+    def example_input(self) -> torch.Tensor:
+        """``X0`` as a model input ``(1, *S)``."""
+        return self.vertices[0][None]
 
     # -- points -------------------------------------------------------------------------
     def image(self, lam, dtype=None) -> torch.Tensor:
@@ -117,6 +143,14 @@ class ConvexHull:
         lam = torch.as_tensor(lam, dtype=torch.float64)
         return (lam >= -tol).all(-1) & (lam.sum(-1) <= 1.0 + tol)
 
+    def clip(self, lam: torch.Tensor) -> torch.Tensor:
+        """``lam (..., n)`` pulled exactly into the domain (rounding can leave λ a hair
+        outside)."""
+        lam = lam.clamp_min(0.0)
+        total = lam.sum(-1, keepdim=True)
+        lam = torch.where(total > 1.0, lam / total, lam)
+        return torch.where(lam.sum(-1, keepdim=True) > 1.0, lam * (1 - 1e-12), lam)
+
     def _corners(self) -> torch.Tensor:
         return torch.cat([torch.zeros(1, self.n, dtype=torch.float64), torch.eye(self.n).double()])
 
@@ -128,12 +162,17 @@ class ConvexHull:
         """Node ``(1, n+1, n)``: the λ-coordinates of the simplex's vertices."""
         return self._corners()[None]
 
-    def node_inputs(self, nodes, dtype):
-        """Affine inputs of ``B`` nodes: coefficients ``(B, p+1, *S)`` = ``[c, G_1 … G_p]``
-        (``x = c + Σ θ_i G_i``) and the domain of ``θ`` (``'simplex'`` or ``'cube'``)."""
+    def region(self, nodes, dtype) -> Region:
+        """The regions of ``B`` nodes: their affine inputs ``x = c + Σ θ_i G_i``,
+        coefficients ``[c, G_1 … G_n]`` ``(B, n+1, *S)`` in ``dtype``, ``θ`` in the
+        set's :attr:`domain`."""
+        return Region.affine(self._lift(self._affine(nodes), dtype), self.domain)
+
+    def _affine(self, nodes):
+        """The λ-space affine maps ``(B, n+1, n)`` of the nodes: a vertex, then the edges
+        from it to the others."""
         c = nodes[:, 0]  # (B, n)
-        coeff = torch.cat([c[:, None], nodes[:, 1:] - c[:, None]], 1)  # (B, n+1, n)
-        return self._lift(coeff, dtype), "simplex"
+        return torch.cat([c[:, None], nodes[:, 1:] - c[:, None]], 1)
 
     def split(self, nodes: torch.Tensor) -> torch.Tensor:
         """Bisect each node's longest edge (image-space length): ``(2B, n+1, n)``; the two
@@ -157,6 +196,20 @@ class ConvexHull:
         """λ ``(B, n)`` of barycentric ``weights (B, n+1)`` in each node."""
         return torch.einsum("bv,bvn->bn", weights, nodes)
 
+    def centre_weights(self, nodes: torch.Tensor) -> torch.Tensor:
+        """The weights ``(B, n+1)`` of each node's centroid."""
+        return torch.full((len(nodes), nodes.shape[1]), 1.0 / nodes.shape[1], dtype=torch.float64)
+
+    def project_weights(self, w: torch.Tensor) -> torch.Tensor:
+        """Each row of ``w (B, n+1)`` projected (Euclidean) onto the barycentric weights."""
+        u, _ = torch.sort(w, dim=1, descending=True)
+        css = u.cumsum(1) - 1.0
+        k = torch.arange(1, w.shape[1] + 1, dtype=w.dtype)
+        cond = u - css / k > 0
+        rho = cond.to(torch.int64).cumsum(1).argmax(1, keepdim=True)
+        theta = css.gather(1, rho) / (rho + 1).to(w.dtype)
+        return (w - theta).clamp_min(0.0)
+
     def _lift(self, coeff, dtype):
         """Image-space coefficients of λ-space affine maps ``coeff (B, p+1, n)``
         (row 0 a point, rows 1… directions): ``(B, p+1, *S)`` in ``dtype``."""
@@ -167,7 +220,26 @@ class ConvexHull:
         return img.reshape(B, q, *self.shape).to(dtype)
 
 
-class Parallelotope(ConvexHull):
+class _CornerNodes:
+    """Nodes that are pairs of opposite corners ``(B, 2, …)``, a node's points given by
+    weights in ``[0, 1]`` per coordinate: a sub-cube of λ, a sub-box of images."""
+
+    def node_points(self, nodes):
+        """Candidate points: the corners ``lo``, ``hi`` and the centre of each node."""
+        return torch.cat([nodes, nodes.mean(1, keepdim=True)], 1)
+
+    def node_point(self, nodes, weights):
+        """The points at weights ``(B, …)`` in [0, 1] within each node."""
+        return nodes[:, 0] + weights * (nodes[:, 1] - nodes[:, 0])
+
+    def centre_weights(self, nodes):
+        return torch.full((len(nodes), *nodes.shape[2:]), 0.5, dtype=torch.float64)
+
+    def project_weights(self, w):
+        return w.clamp(0.0, 1.0)
+
+
+class Parallelotope(_CornerNodes, ConvexHull):
     """ModelVerification.jl's treatment of a hull: ``{X0 + D λ : λ ∈ [0, 1]^n}`` (baseline).
 
     A superset of :class:`ConvexHull` with ``n!`` times its volume: its points, and so its
@@ -180,6 +252,9 @@ class Parallelotope(ConvexHull):
         lam = torch.as_tensor(lam, dtype=torch.float64)
         return ((lam >= -tol) & (lam <= 1.0 + tol)).all(-1)
 
+    def clip(self, lam):
+        return lam.clamp_min(0.0).clamp_max(1.0)
+
     def _corners(self) -> torch.Tensor:
         bits = torch.arange(2**self.n)[:, None] >> torch.arange(self.n)
         return (bits & 1).double()
@@ -191,10 +266,9 @@ class Parallelotope(ConvexHull):
         """Node ``(1, 2, n)``: the cube's ``lo`` and ``hi`` corners in λ."""
         return torch.stack([torch.zeros(self.n), torch.ones(self.n)]).double()[None]
 
-    def node_inputs(self, nodes, dtype):
+    def _affine(self, nodes):
         lo, hi = nodes[:, 0], nodes[:, 1]
-        coeff = torch.cat([lo[:, None], torch.diag_embed(hi - lo)], 1)  # (B, n+1, n)
-        return self._lift(coeff, dtype), "cube"
+        return torch.cat([lo[:, None], torch.diag_embed(hi - lo)], 1)  # (B, n+1, n)
 
     def split(self, nodes):
         """Bisect each node's longest side (image-space length): ``(2B, 2, n)``."""
@@ -207,16 +281,8 @@ class Parallelotope(ConvexHull):
         right[rows, 0, k] = mid
         return torch.cat([left, right])
 
-    def node_points(self, nodes):
-        """Candidate points: the corners ``lo``, ``hi`` and the centre of each node."""
-        return torch.cat([nodes, nodes.mean(1, keepdim=True)], 1)
 
-    def node_point(self, nodes, weights):
-        """λ of cube coordinates ``weights (B, n)`` in [0, 1] within each node."""
-        return nodes[:, 0] + weights * (nodes[:, 1] - nodes[:, 0])
-
-
-class Box:
+class Box(_CornerNodes):
     """The ℓ∞ baseline ``{x : lower ≤ x ≤ upper}``.
 
     Parameters
@@ -228,7 +294,7 @@ class Box:
     directions), and branch and bound halves the widest pixel.
     """
 
-    domain = "box"
+    rows = 1  # an interval: no parameter
 
     def __init__(self, lower, upper) -> None:
         for name, x in (("lower", lower), ("upper", upper)):
@@ -247,9 +313,15 @@ class Box:
         self.shape = tuple(lower.shape)
         self.n = math.prod(self.shape)
 
+    def example_input(self) -> torch.Tensor:
+        return self.lower[None]
+
     def image(self, x, dtype=None) -> torch.Tensor:
         """A box's points are images: ``x (..., *S)`` in ``dtype`` (default the box's)."""
         return torch.as_tensor(x).to(dtype or self.dtype)
+
+    def clip(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.minimum(torch.maximum(x, self.lower), self.upper)
 
     def contains_point(self, x, tol: float = 0.0) -> torch.Tensor:
         """Whether each image ``x (..., *S)`` lies in the box (to ``tol``)."""
@@ -284,9 +356,9 @@ class Box:
     def root(self) -> torch.Tensor:
         return torch.stack([self.lower, self.upper])[None]
 
-    def node_bounds(self, nodes: torch.Tensor, dtype):
-        """Intervals of ``B`` nodes: lower and upper ``(B, 1, *S)``."""
-        return nodes[:, :1].to(dtype), nodes[:, 1:].to(dtype)
+    def region(self, nodes: torch.Tensor, dtype) -> Region:
+        """The intervals of ``B`` nodes."""
+        return Region.interval(nodes[:, 0].to(dtype), nodes[:, 1].to(dtype))
 
     def split(self, nodes):
         """Halve each node's widest pixel: ``(2B, 2, *S)``."""
@@ -299,11 +371,3 @@ class Box:
         left[rows, 1, k] = mid
         right[rows, 0, k] = mid
         return torch.cat([left, right]).reshape(2 * B, 2, *self.shape)
-
-    def node_points(self, nodes):
-        """Candidate images of each node: its lower and upper corners and centre."""
-        return torch.cat([nodes, nodes.mean(1, keepdim=True)], 1)
-
-    def node_point(self, nodes, weights):
-        """Images at cube coordinates ``weights (B, *S)`` in [0, 1] within each node."""
-        return nodes[:, 0] + weights * (nodes[:, 1] - nodes[:, 0])

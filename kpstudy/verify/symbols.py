@@ -8,13 +8,14 @@ the symbols made at one ReLU share a :class:`Block`: each symbol's coefficients 
 own ``(C, h, w)`` window of a ``(C, H, W)`` activation (zero outside it), the windows of
 one size, their corners per symbol. A new symbol's window is its neuron (``1 × 1``); a
 convolution maps the whole block in one call, each window to the outputs it reaches, so
-a symbol costs its own reach and no more. Convolutions, transposed convolutions,
-per-channel maps and channel slices map blocks to blocks (:func:`apply`), sums and
-channel concatenations merge them (:func:`combine`); the proxy's cell pool reads each
-block into the dense stack of its cells (:func:`cell_pool`), so the full-resolution
-dense stack is never formed; any other operator gets the dense stack (:func:`dense`).
-Within one value a symbol lives in one block only, so ``Σ_e |coefficient|``
-(:func:`reach`) is exact.
+a symbol costs its own reach and no more. Each operator says what it does with blocks
+(:class:`kpstudy.verify.ops.Op`): convolutions, transposed convolutions, per-channel
+maps and channel slices map blocks to blocks (:func:`apply`, each by its
+``map_window``), sums and channel concatenations merge them (:func:`combine`); the
+proxy's cell pool reads each block into the dense stack of its cells (:func:`cell_pool`),
+so the full-resolution dense stack is never formed; any other operator gets the dense
+stack (:func:`dense`). Within one value a symbol lives in one block only, so
+``Σ_e |coefficient|`` (:func:`reach`) is exact.
 
 Windows lie inside their activation: where a window would cross the border its corner
 moves in and its data shifts with it (:func:`_inside`), which also drops what lies
@@ -24,11 +25,13 @@ outside, as a convolution's zero padding requires.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
-from kpstudy.verify import ops
+if TYPE_CHECKING:
+    from kpstudy.verify import ops
 
 
 @dataclass
@@ -62,19 +65,9 @@ class Block:
 
 
 def is_local(op: ops.Op, in_shapes, out_shape) -> bool:
-    """Whether ``op`` maps blocks to blocks (see the module docstring)."""
-    if len(out_shape) != 3 or any(len(s) != 3 for s in in_shapes):
-        return False
-    if isinstance(op, (ops.Conv, ops.ConvTranspose, ops.BatchNorm, ops.Identity, ops.Add)):
-        return True
-    if isinstance(op, ops.Cat):
-        return op.dim in (1, -3)
-    if isinstance(op, ops.Slice):
-        idx = op.index
-        return (len(idx) < 2 or isinstance(idx[1], slice)) and all(
-            i == slice(None) for i in idx[2:]
-        )
-    return False
+    """Whether ``op`` maps blocks to blocks here: a local operator
+    (:attr:`~kpstudy.verify.ops.Op.local`) between ``(C, H, W)`` values."""
+    return op.local and len(out_shape) == 3 and all(len(s) == 3 for s in in_shapes)
 
 
 #: Entries per row of :func:`l1_rows`' input up to which one reduction is fastest.
@@ -300,25 +293,22 @@ def _extent(live: torch.Tensor):
 
 
 def apply(op: ops.Op, blocks: list[Block], out_shape) -> list[Block]:
-    """The blocks of ``op.linear(value)`` for a one-input local ``op``."""
+    """The blocks of ``op.linear(value)`` for a one-input local ``op``, each block's
+    windows mapped by the operator (:meth:`~kpstudy.verify.ops.Op.map_window`)."""
     out = []
     for b in blocks:
         B = b.coeff.shape[0]
         x, y0, x0 = b.flat()
-        if isinstance(op, ops.Conv):
-            y, oy, ox = _conv(op.m, x, y0, x0, out_shape[1:])
-        elif isinstance(op, ops.ConvTranspose):
-            y, oy, ox = _conv_transpose(op.m, x, y0, x0, out_shape[1:])
-        else:  # per-channel maps and channel slices keep the windows
-            y, oy, ox = op.linear(x), y0, x0
+        y, oy, ox = op.map_window(x, y0, x0, out_shape[1:])
         if y.numel() > 0:
             out.append(Block.unflat(y, b.start, oy, ox, B))
     return out
 
 
 def combine(op: ops.Op, inputs: list[list[Block]], in_shapes) -> list[Block]:
-    """The blocks of a sum or channel concatenation: a symbol's windows from the inputs
-    are merged on their union."""
+    """The blocks of a local operator of several inputs (a sum, a channel
+    concatenation): a symbol's windows from the inputs are placed on their union, where
+    ``op.linear`` maps them."""
     starts = sorted({b.start for blocks in inputs for b in blocks})
     by_start = [{b.start: b for b in blocks} for blocks in inputs]
     H, W = in_shapes[0][1:]
@@ -341,7 +331,7 @@ def combine(op: ops.Op, inputs: list[list[Block]], in_shapes) -> list[Block]:
                 continue
             coeff, y, x = b.flat()
             parts.append(_shift(coeff, y0.reshape(-1) - y, x0.reshape(-1) - x, (hh, ww)))
-        coeff = parts[0] + parts[1] if isinstance(op, ops.Add) else torch.cat(parts, 1)
+        coeff = op.linear(*parts)
         out.append(Block.unflat(coeff, start, y0.reshape(-1), x0.reshape(-1), B))
     return out
 
@@ -350,7 +340,7 @@ def _pair(v):
     return (v, v) if isinstance(v, int) else tuple(v)
 
 
-def _conv(m, x, y, x0, out_hw):
+def conv_windows(m, x, y, x0, out_hw):
     """``conv2d`` (no bias) of windows ``x (N, C, h, w)`` at corners ``y, x0 (N,)``: each
     window's outputs (those it reaches, placed inside ``out_hw``) and their corners."""
     k, s, p, d = (_pair(v) for v in (m.kernel_size, m.stride, m.padding, m.dilation))
@@ -372,7 +362,7 @@ def _conv(m, x, y, x0, out_hw):
     return _inside(out, first[0], first[1], out_hw)
 
 
-def _conv_transpose(m, x, y, x0, out_hw):
+def conv_transpose_windows(m, x, y, x0, out_hw):
     """``conv_transpose2d`` (no bias) of windows at corners ``y, x0``, placed inside ``out_hw``."""
     k, s, p, d = (_pair(v) for v in (m.kernel_size, m.stride, m.padding, m.dilation))
     out = F.conv_transpose2d(x, m.weight, None, s, 0, 0, m.groups, d)
