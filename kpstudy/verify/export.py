@@ -77,12 +77,25 @@ class WorstMargins(nn.Module):
     ``z_g = min_{j ≠ t_g} (y[t_g] − y[j])`` (``t_g``: the target, ``j``: the group's other
     rows), for the groups of ``spec.row_group`` in order (:attr:`groups`).
 
-    The margin rows are :meth:`~kpstudy.verify.spec.ArgmaxSpec.margins` (the same
-    floating-point numbers), their minimum a ReLU tree, ``min(a, b) = a − relu(a − b)``:
-    each level pairs the running minima of a group, neighbours in the group's row order
-    (a group of odd count carries its last one to the next level unchanged). The ONNX
-    graph is ``Gather`` (constant indices), ``Sub``, ``Relu`` and ``Concat``, with
-    ``⌈log2(max_g (s_g − 1))⌉`` levels for groups of ``s_g`` rows.
+    The margins are :meth:`~kpstudy.verify.spec.ArgmaxSpec.margins`' rows (the same
+    floating-point numbers: ``y[t] − y[j]``), their minimum a ReLU tree,
+    ``min(a, b) = a − relu(a − b)``. Each group's rows are padded with copies of
+    themselves to ``L`` (:attr:`width`, the least power of two ≥ every group's row count;
+    :func:`_pad`), the ``G`` blocks reshaped to ``(B, G, L)``, and each of the ``log2 L``
+    levels takes the minimum of the block's two halves, entry by entry. Padding leaves
+    each minimum as it is (copies only); it makes the second half of a block a copy of
+    the first wherever a group has run out of rows, so that the tree's extra pairs are
+    ``(a, a)``, a ReLU of exactly 0 for a verifier's linear bounds. The cost: ``G·L``
+    entries, for a 64×64 study instance (23 keypoints of up to 4,095 rows, 38,691 in
+    all) 94,208.
+
+    The ONNX graph is ``Slice``, ``Sub`` (the target broadcast against its group's other
+    cells), ``Concat``, ``Reshape`` and ``Relu``. No ``Gather``: NeuralSAT 0.2.17's
+    onnx2pytorch follows one by a ``Squeeze`` whose backward bounds its auto_LiRPA gets
+    wrong, and its forward bounds take a single index only (the first form of this tree,
+    a ``Gather`` per level, failed to load there); no strided ``Slice`` either, whose step
+    that onnx2pytorch ignores. Nodes: about 3 ``Slice`` and ``log2`` of the group's row
+    count ``Concat`` per group, then 2 ``Slice``, 2 ``Sub`` and a ``Relu`` per level.
 
     Ties and rounding: ``z_g ≤ 0`` exactly when a margin row of ``g`` is ``≤ 0`` in real
     arithmetic. In floating point a row ``≤ 0`` still gives ``z_g ≤ 0`` (rounding is
@@ -94,41 +107,49 @@ class WorstMargins(nn.Module):
     ----------
     groups : list of int
         The group of each output column.
+    width : int
+        ``L``, the padded row count of every group.
+    pos, neg : LongTensor, shape (G·L,)
+        The padded blocks, group after group: entry ``g·L + i`` is
+        ``y[pos[g·L + i]] − y[neg[g·L + i]]``, a margin row of group ``groups[g]``.
     """
 
     def __init__(self, spec: ArgmaxSpec) -> None:
         super().__init__()
         rows = spec.row_group.tolist()
         self.groups = list(dict.fromkeys(rows))
-        self.pos, self.neg = spec.row_pos.clone(), spec.row_neg.clone()
-        members, start = [], 0  # per group: positions of its running minima in v
-        for g in self.groups:
-            count = rows.count(g)
-            members.append(list(range(start, start + count)))
-            start += count
-        # (a, b, carried or None) indices into v: v ← [a − relu(a − b), v[carried]]
-        self.levels: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = []
-        while any(len(p) > 1 for p in members):
-            pairs = [(p[i], p[i + 1]) for p in members for i in range(0, len(p) - 1, 2)]
-            carried = [p[-1] for p in members if len(p) % 2]
-            new, pair, carry = [], 0, len(pairs)  # the next v: pairs' minima, then carried
-            for p in members:
-                half, odd = len(p) // 2, len(p) % 2
-                new.append([*range(pair, pair + half), *[carry] * odd])
-                pair, carry = pair + half, carry + odd
-            members = new
-            first, second = (torch.tensor(x) for x in zip(*pairs))
-            self.levels.append((first, second, torch.tensor(carried) if carried else None))
-        order = [p[0] for p in members]  # each group's minimum in v
-        self.order = None if order == sorted(order) else torch.tensor(order)
+        self.width = 1 << (max(rows.count(g) for g in self.groups) - 1).bit_length()
+        #: per group: (offset of its outputs, their count, the target's index among them)
+        self.blocks = [(spec.offsets[g], spec.group_sizes[g], spec.targets[g]) for g in self.groups]
+        selected = [(spec.row_group == g, rows.count(g)) for g in self.groups]
+        self.pos = torch.cat([_pad(spec.row_pos[r][None], c, self.width)[0] for r, c in selected])
+        self.neg = torch.cat([_pad(spec.row_neg[r][None], c, self.width)[0] for r, c in selected])
 
     def forward(self, y: torch.Tensor) -> torch.Tensor:
-        v = y.index_select(1, self.pos) - y.index_select(1, self.neg)
-        for a, b, carried in self.levels:
-            first = v.index_select(1, a)
-            low = first - torch.relu(first - v.index_select(1, b))
-            v = low if carried is None else torch.cat([low, v.index_select(1, carried)], 1)
-        return v if self.order is None else v.index_select(1, self.order)
+        padded = []
+        for start, count, target in self.blocks:
+            t = start + target
+            parts = [y[:, a:b] for a, b in ((start, t), (t + 1, start + count)) if b > a]
+            others = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+            padded.append(_pad(y[:, t : t + 1] - others, count - 1, self.width))
+        v = torch.cat(padded, 1).reshape(-1, len(self.groups), self.width)
+        half = self.width
+        while half > 1:
+            half //= 2
+            first = v[:, :, :half]
+            v = first - torch.relu(first - v[:, :, half:])
+        return v.flatten(1)
+
+
+def _pad(v: torch.Tensor, count: int, width: int) -> torch.Tensor:
+    """``v (B, count)``, ``1 ≤ count ≤ width`` (a power of two), padded to ``(B, width)`` with
+    copies of its columns: for ``count ≤ width/2`` two copies of ``v`` padded to
+    ``width/2``, else ``v`` then its first ``width − count`` columns (a ``Concat`` of
+    ``Slice`` s in ONNX)."""
+    if 2 * count <= width:
+        half = _pad(v, count, width // 2)
+        return torch.cat([half, half], 1)
+    return v if count == width else torch.cat([v, v[:, : width - count]], 1)
 
 
 class _Instance(nn.Module):
@@ -191,14 +212,15 @@ def export_instance(
       the airliner): a few kilobytes. This is the form for VNN-COMP tools: their VNN-LIB
       readers cost time and memory per disjunct (alpha-beta-CROWN keeps an input copy
       per clause, NeuralSAT's parser took 32 s and 14 GB for the ~2·10^4 clauses of the
-      full form), and the tree is ``Gather``, ``Sub``, ``Relu`` and ``Concat``, which
-      their ONNX importers take and their branch and bound can split like any other
-      ReLU. One instance per keypoint would still leave a clause per cell (~10^3) in
+      full form), and the tree is ``Slice``, ``Sub``, ``Concat``, ``Reshape`` and
+      ``Relu``, which their ONNX importers and bounds take (no ``Gather``: see
+      :class:`WorstMargins`) and their branch and bound can split like any other ReLU.
+      One instance per keypoint would still leave a clause per cell (~10^3) in
       each, and 23 files per hull.
     * ``'full'``: output ``y`` of shape ``(1, m)``, the model's flattened output, and one
       disjunct ``Y_j ≥ Y_t`` per margin row: every row a linear function of ``y``, no
       tree to relax, for verifiers that cope with ~10^4 disjuncts (and Marabou 2.0.0,
-      whose ONNX reader has no ``Gather``).
+      whose ONNX reader has no ``Slice``).
 
     Ties are violations in both, as in :func:`kpstudy.verify.verify` (a margin of
     exactly 0 is not verified): ``Y_g = 0`` is a violation as ``Y_j = Y_t`` is. In real
