@@ -186,6 +186,23 @@ def main(argv=None) -> int:
         help="compact (default: each keypoint's worst margin in the ONNX, one disjunct per "
         "keypoint) or full (the cells as outputs, one disjunct per competing cell)",
     )
+    eb.add_argument(
+        "--tolerance-units",
+        default="heatmap",
+        help="the allocation's reading: heatmap (default, sound) or paper (larger cells)",
+    )
+    eb.add_argument(
+        "--reference-nodes",
+        type=int,
+        help="also decide each instance with kpstudy's verify, this node budget, and write "
+        "reference.csv (default: no reference)",
+    )
+    eb.add_argument(
+        "--mix",
+        type=int,
+        help="keep at most this many instances per reference verdict (holds, violated, "
+        "unknown), in grid order; needs --reference-nodes",
+    )
     args = parser.parse_args(argv)
 
     try:
@@ -390,6 +407,9 @@ def _export_benchmark(args, argv) -> None:
         vnnlib_version=args.vnnlib_version,
         dtype=args.dtype,
         property_form=args.property_form,
+        tolerance_units=args.tolerance_units,
+        reference_nodes=args.reference_nodes,
+        mix=args.mix,
         command=shlex.join(["python", "-m", "kpstudy", *map(str, argv)]),
     )
     for name, reason in done["skipped"]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import onnxruntime as ort
@@ -215,6 +216,20 @@ def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # 
     _refused(capsys, "input_form", lambda: export(study, out, *BLOCKS, "--input-form", "cube"))
     _refused(capsys, "dtype", lambda: export(study, out, *BLOCKS, "--dtype", "float16"))
     _refused(capsys, "property_form", lambda: export(study, out, *BLOCKS, "--property-form", "min"))
+    _refused(
+        capsys,
+        "tolerance_units",
+        lambda: export(study, out, *BLOCKS, "--tolerance-units", "pixels"),
+    )
+    _refused(
+        capsys, "reference_nodes", lambda: export(study, out, *BLOCKS, "--reference-nodes", "0")
+    )
+    _refused(capsys, "mix", lambda: export(study, out, *BLOCKS, "--mix", "2"))  # no reference
+    _refused(
+        capsys,
+        "mix",
+        lambda: export(study, out, *BLOCKS, "--reference-nodes", "5", "--mix", "0"),
+    )
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
     _refused(
@@ -268,3 +283,106 @@ def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatc
     with pytest.raises(ValueError, match="^instances: no seed image"):
         export_benchmark(checkpoint, data, tmp_path / "none", instances)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["some"]
+
+
+def reference_rows(out):
+    with open(out / "reference.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_reference_csv_holds_kpstudys_verdicts(study, tmp_path):  # noqa: F811
+    """``--reference-nodes``: reference.csv has a row per instance of instances.csv, in its
+    order, with the status and node count that :func:`kpstudy.verify.verify` gives the
+    instance's proxy, hull and spec under that node budget (and no time budget), the
+    method and the budget; README.md reports them."""
+    import math
+
+    from kpstudy.verify import verify
+
+    data, checkpoint = study
+    out = tmp_path / "ref"
+    assert export(study, out, *BLOCKS, "--reference-nodes", "40") == 0
+    rows = reference_rows(out)
+    assert [f"onnx/{r['name']}.onnx" for r in rows] == [row[0] for row in rows_of(out)]
+    backbone, seed_of = _context(str(checkpoint), str(data))
+    for instance, row in zip(grid(data, "blocks", alphas=[1], kappas=[1], ms=[1], seeds=1), rows):
+        assert row["name"] == instance_name(instance)
+        vertices = hull_vertices(
+            data, instance.image_id, "blocks", instance.m, instance.overlapping, 0
+        )
+        built = build_instance(backbone, vertices, seed_of(instance.image_id))
+        ours = verify(built.proxy, built.hull, built.spec, timeout=math.inf, max_nodes=40)
+        assert (row["status"], int(row["nodes"])) == (ours.status, ours.nodes)
+        assert (row["method"], row["max_nodes"]) == ("auto", "40")
+        assert float(row["time"]) >= 0
+    readme = (out / "README.md").read_text()
+    assert "## Reference verdicts" in readme and "a budget of 40 branch-and-bound" in readme
+    assert "| kpstudy | nodes |" in readme
+    assert not (tmp_path / "plain").exists()
+    assert export(study, tmp_path / "plain", *BLOCKS) == 0  # off by default
+    assert not (tmp_path / "plain" / "reference.csv").exists()
+
+
+def test_the_tolerance_reading_reaches_the_instances(study, tmp_path):  # noqa: F811
+    """``--tolerance-units paper`` exports the paper reading's cells, larger than the
+    heatmap reading's: each VNN-LIB file's header states the proxy's cells per keypoint,
+    those of :func:`kpstudy.certify.build_instance` under that reading, and the paper's
+    are fewer."""
+    import re
+
+    data, checkpoint = study
+    backbone, seed_of = _context(str(checkpoint), str(data))
+    (instance,) = grid(data, "brightness", alphas=[3], kappas=[1], levels=[1], seeds=1)
+    vertices = hull_vertices(data, instance.image_id, "brightness", level=1.0)
+    cells = {}
+    for units in ("heatmap", "paper"):
+        out = tmp_path / units
+        args = ["--kind", "brightness", "--levels", "1", "--seeds", "1", "--alphas", "3"]
+        assert export(study, out, *args, "--tolerance-units", units) == 0
+        ((_, spec_file, _),) = rows_of(out)
+        header = re.search(
+            r"model outputs: (\d+) in 23 groups \[([\d, ]+)\]", (out / spec_file).read_text()
+        )
+        built = build_instance(
+            backbone, vertices, seed_of(instance.image_id), alpha=3, tolerance_units=units
+        )
+        sizes = [int(v) for v in header[2].split(",")]
+        assert sizes == built.spec.group_sizes and int(header[1]) == built.spec.n_outputs
+        assert f"tolerance reading `{units}`" in (out / "README.md").read_text()
+        cells[units] = sizes
+    assert sum(cells["paper"]) < sum(cells["heatmap"])  # measured: 4,689 against 13,014
+    assert all(p <= h for p, h in zip(cells["paper"], cells["heatmap"]))
+
+
+def test_mix_keeps_instances_until_each_verdict_is_represented(study, tmp_path, monkeypatch):  # noqa: F811
+    """``mix=1`` walks the grid in order: it keeps the first instance of each verdict,
+    leaves out one whose class is full and stops when every class has one, never building
+    the rest; reference.csv and README.md say which and why. (The tiny study's CNN
+    violates every instance, so kpstudy's verify answers from a script here.)"""
+    import kpstudy.verify
+    from kpstudy.study.vnncomp import export_benchmark
+
+    data, checkpoint = study
+    instances = grid(data, "blocks", alphas=[1, 2], kappas=[1], ms=[1, 2], seeds=2)
+    assert len(instances) == 16
+    answers = iter(["violated", "violated", "holds", "unknown", "holds"])
+
+    def scripted(model, input_set, spec, **kw):
+        assert kw["max_nodes"] == 7 and kw["timeout"] == float("inf")
+        return SimpleNamespace(status=next(answers), time=0.5, nodes=3)
+
+    monkeypatch.setattr(kpstudy.verify, "verify", scripted)
+    names = [instance_name(i) for i in instances]
+    done = export_benchmark(checkpoint, data, tmp_path / "mix", instances, reference_nodes=7, mix=1)
+    assert done["written"] == [names[0], names[2], names[3]]
+    assert done["unmixed"] == [(names[1], "violated")] and done["unexamined"] == 12
+    rows = reference_rows(tmp_path / "mix")
+    assert [(r["name"], r["status"]) for r in rows] == [
+        (names[0], "violated"),
+        (names[2], "holds"),
+        (names[3], "unknown"),
+    ]
+    readme = (tmp_path / "mix" / "README.md").read_text()
+    assert "Selection (`mix` = 1)" in readme and "the grid's last 12 were never built" in readme
+    assert f"- {names[1]}: violated" in readme.split("## Not kept by the mix")[1]
+    assert "Counts: 1 holds, 1 violated, 1 unknown." in readme

@@ -10,12 +10,18 @@ verifies::
     DIR/vnnlib/NAME.vnnlib    the input set and the violation of "each keypoint's cell wins"
                               (one disjunct per keypoint by default)
     DIR/instances.csv         onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT (no header)
+    DIR/reference.csv         kpstudy's own verdict per instance (with ``reference_nodes``)
     DIR/README.md             how the files were made and what each instance means
 
 Each instance's vertices are those of the campaign (:func:`data_gen.perturb.hull_vertices`
 with the campaign's default ``hull_seed``), its proxy, hull and spec those of
-:func:`kpstudy.certify.build_instance`. The files depend only on the arguments, the
-checkpoint, the dataset and the code (no dates, no paths but the command's own): a rerun
+:func:`kpstudy.certify.build_instance` under the chosen tolerance reading. With
+``reference_nodes``, :func:`kpstudy.verify.verify` decides each instance within that node
+budget (the campaign's verdict for that budget, on any machine), and ``mix`` keeps the
+grid's instances, in order, only while their verdict's class (``holds``, ``violated``,
+``unknown``) has fewer than ``mix``: a benchmark of proofs, refutations and hard cases.
+The files depend only on the arguments, the checkpoint, the dataset and the code (no
+dates, no paths but the command's own; only reference.csv's seconds vary): a rerun
 writes the same bytes. The folder is built beside ``DIR`` (``.DIR.partial``; an
 interrupted run leaves it there, and the next run rewrites it) and moved onto ``DIR``
 at the end: ``DIR`` appears complete or not at all.
@@ -25,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
+import math
 import os
 import shutil
 from pathlib import Path
@@ -32,13 +39,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["DTYPES", "export_benchmark", "instance_name"]
+__all__ = ["DTYPES", "REFERENCE_METHOD", "VERDICTS", "export_benchmark", "instance_name"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: The bound method of the reference verdicts (:func:`kpstudy.verify.verify`'s default).
+REFERENCE_METHOD = "auto"
+#: The classes of reference verdicts that ``mix`` balances: proofs, refutations, hard cases.
+VERDICTS = ("holds", "violated", "unknown")
 #: Why an instance whose pixel grid alone exceeds the tolerance is not exported.
 _NOT_CERTIFIABLE = (
     "not certifiable at this heatmap resolution (the nearest pixels' first-order pose "
     "error is {:.3g} × ε/κ)"
+)
+
+
+#: Why an instance whose cells leave no keypoint a competing cell is not exported.
+_NOTHING_TO_VERIFY = (
+    "nothing to verify: every keypoint's cell covers its whole heatmap (the property holds "
+    "trivially)"
 )
 
 
@@ -94,6 +112,9 @@ def export_benchmark(
     vnnlib_version: str = "1.0",
     dtype: str = "float32",
     property_form: str = "compact",
+    tolerance_units: str = "heatmap",
+    reference_nodes: int | None = None,
+    mix: int | None = None,
     command: str | None = None,
     progress: bool = False,
 ) -> dict:
@@ -121,6 +142,21 @@ def export_benchmark(
         Of :func:`~kpstudy.verify.export.export_instance`: each keypoint's worst margin in
         the graph and one disjunct per keypoint (default), or the proxy's cells as the
         output and one disjunct per competing cell.
+    tolerance_units : {'heatmap', 'paper'}
+        The allocation's reading of the tolerances
+        (:data:`kpstudy.pose.allocation.TOLERANCE_UNITS`), which sets each keypoint's
+        cells: ``'heatmap'`` (sound to first order; on the 64×64 CNN its instances tend
+        to be violated at the seed image) or the paper's, larger cells.
+    reference_nodes : int, optional
+        Decide each instance with :func:`kpstudy.verify.verify` (method
+        :data:`REFERENCE_METHOD`, this node budget, no time budget) and write
+        ``reference.csv``: ``name,status,time,nodes,method,max_nodes`` (header; seconds
+        of this machine). None (default): no verification, no reference.csv.
+    mix : int, optional
+        Walk the grid in order and keep an instance only while its reference verdict's
+        class (:data:`VERDICTS`) holds fewer than ``mix`` kept ones; stop once every
+        class has ``mix``. Needs ``reference_nodes``. README.md lists the verdicts of the
+        instances left out and the count never examined.
     command : str, optional
         The command line to record in README.md (default: a call of this function).
     progress : bool
@@ -129,24 +165,31 @@ def export_benchmark(
     Returns
     -------
     dict
-        ``out`` (Path), ``written`` (instance names, in order) and ``skipped``
+        ``out`` (Path), ``written`` (instance names, in order), ``skipped``
         (``(name, reason)`` of the seeds :func:`kpstudy.certify.build_instance` refuses:
         no valid nominal pose, a keypoint outside the heatmap, and of the instances that
-        are not certifiable at the heatmap's resolution).
+        are not certifiable at the heatmap's resolution or have nothing to verify: every
+        keypoint's cell its whole heatmap), ``reference`` (name → ``(status,
+        seconds, nodes)`` of the written instances; empty without ``reference_nodes``),
+        ``unmixed`` (``(name, status)`` of the instances ``mix`` left out) and
+        ``unexamined`` (how many of the grid's instances ``mix`` never built).
 
     Raises
     ------
     ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError
         One line naming the argument (``checkpoint``, ``data``, ``out``, ``timeout``,
-        ``input_form``, ``vnnlib_version``, ``dtype``, ``property_form``, ``instances``),
-        before anything is written.
+        ``input_form``, ``vnnlib_version``, ``dtype``, ``property_form``,
+        ``tolerance_units``, ``reference_nodes``, ``mix``, ``instances``), before anything
+        is written.
     """
     from tqdm.auto import tqdm
 
-    from kpstudy import __version__
+    from kpstudy import __version__, _checks
     from kpstudy.certify.allocation_method import build_instance
     from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
+    from kpstudy.pose.allocation import TOLERANCE_UNITS
     from kpstudy.study.campaign import Settings, _context, instance_vertices, provenance
+    from kpstudy.verify import verify
     from kpstudy.verify.export import (
         INPUT_FORMS,
         PROPERTY_FORMS,
@@ -175,11 +218,26 @@ def export_benchmark(
         raise ValueError(
             f"property_form: expected one of {', '.join(PROPERTY_FORMS)}, got {property_form!r}"
         )
+    if tolerance_units not in TOLERANCE_UNITS:
+        raise ValueError(
+            f"tolerance_units: expected one of {', '.join(TOLERANCE_UNITS)}, "
+            f"got {tolerance_units!r}"
+        )
+    _checks.integer(reference_nodes, "reference_nodes", minimum=1, optional=True)
+    _checks.integer(mix, "mix", minimum=1, optional=True)
+    if mix is not None and reference_nodes is None:
+        raise ValueError("mix: selects by kpstudy's verdicts; give reference_nodes too")
     instances = list(dict.fromkeys(instances))
     if not instances:
         raise ValueError("instances: the grid is empty; nothing to export")
     out = _check_out(out)
-    settings = Settings(str(checkpoint), str(data_dir), timeout=float(timeout))
+    settings = Settings(
+        str(checkpoint),
+        str(data_dir),
+        timeout=float(timeout),
+        nodes=reference_nodes,
+        tolerance_units=tolerance_units,
+    )
     backbone, seed_of = _context(str(checkpoint), str(data_dir))  # refuses a bad checkpoint
     origin = provenance(settings)
     names = [instance_name(i) for i in instances]
@@ -191,8 +249,13 @@ def export_benchmark(
         "vnnlib_version": vnnlib_version,
         "dtype": dtype,
         "property_form": property_form,
+        "tolerance_units": tolerance_units,
+        "reference_nodes": reference_nodes,
+        "mix": mix,
     }
-    written, skipped, sizes = [], [], {}
+    written, skipped, sizes, reference, unmixed = [], [], {}, {}, []
+    kept = dict.fromkeys(VERDICTS, 0)
+    unexamined = 0
     staged = None
     try:
         with staged_directory(out, config) as (staging, _):
@@ -200,9 +263,17 @@ def export_benchmark(
             for sub in ("onnx", "vnnlib"):
                 (staging / sub).mkdir(exist_ok=True)
             work = staging / ".instance"
-            for instance, name in tqdm(
-                list(zip(instances, names)), desc="instances", unit="inst", disable=not progress
+            for index, (instance, name) in enumerate(
+                tqdm(
+                    list(zip(instances, names)),
+                    desc="instances",
+                    unit="inst",
+                    disable=not progress,
+                )
             ):
+                if mix is not None and min(kept.values()) >= mix:
+                    unexamined = len(instances) - index
+                    break
                 onnx_path = staging / "onnx" / f"{name}.onnx"
                 vnnlib_path = staging / "vnnlib" / f"{name}.vnnlib"
                 vertices = instance_vertices(instance, data_dir, settings.hull_seed)
@@ -213,6 +284,7 @@ def export_benchmark(
                         seed_of(instance.image_id),
                         alpha=instance.alpha,
                         kappa=instance.kappa,
+                        tolerance_units=tolerance_units,
                     )
                 except ValueError as exc:  # a seed that cannot be certified: no instance
                     skipped.append((name, str(exc)))
@@ -220,6 +292,23 @@ def export_benchmark(
                 if not built.feasible:
                     skipped.append((name, _NOT_CERTIFIABLE.format(built.first_order)))
                     continue
+                if built.spec.n_rows == 0:
+                    skipped.append((name, _NOTHING_TO_VERIFY))
+                    continue
+                if reference_nodes is not None:
+                    result = verify(
+                        built.proxy,
+                        built.hull,
+                        built.spec,
+                        method=REFERENCE_METHOD,
+                        timeout=math.inf,
+                        max_nodes=reference_nodes,
+                    )
+                    if mix is not None and kept[result.status] >= mix:
+                        unmixed.append((name, result.status))
+                        continue
+                    kept[result.status] += 1
+                    reference[name] = (result.status, result.time, result.nodes)
                 if work.exists():
                     shutil.rmtree(work)
                 info = export_instance(
@@ -236,7 +325,12 @@ def export_benchmark(
                 write_text_atomic(vnnlib_path, text.replace("model.onnx", f"onnx/{name}.onnx"))
                 os.replace(work / "model.onnx", onnx_path)  # the pair is complete only now
                 written.append(name)
-                sizes[name] = (info["n_inputs"], info["n_outputs"], info["n_disjuncts"])
+                sizes[name] = (
+                    info["n_inputs"],
+                    built.spec.n_outputs,
+                    info["n_outputs"],
+                    info["n_disjuncts"],
+                )
             if work.exists():
                 shutil.rmtree(work)
             if not written:
@@ -247,6 +341,12 @@ def export_benchmark(
                 )
             rows = [f"onnx/{n}.onnx,vnnlib/{n}.vnnlib,{_num(timeout)}" for n in written]
             write_text_atomic(staging / "instances.csv", "\n".join(rows) + "\n")
+            if reference_nodes is not None:
+                rows = ["name,status,time,nodes,method,max_nodes"] + [
+                    f"{n},{status},{seconds:.3f},{nodes},{REFERENCE_METHOD},{reference_nodes}"
+                    for n, (status, seconds, nodes) in reference.items()
+                ]
+                write_text_atomic(staging / "reference.csv", "\n".join(rows) + "\n")
             readme = _readme(
                 command
                 or (
@@ -267,12 +367,25 @@ def export_benchmark(
                 vnnlib_version,
                 dtype,
                 property_form,
+                tolerance_units,
+                reference,
+                reference_nodes,
+                mix,
+                unmixed,
+                unexamined,
             )
             write_text_atomic(staging / "README.md", readme)
     except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
         shutil.rmtree(staged, ignore_errors=True)
         raise ValueError(str(exc)) from None
-    return {"out": out, "written": written, "skipped": skipped}
+    return {
+        "out": out,
+        "written": written,
+        "skipped": skipped,
+        "reference": reference,
+        "unmixed": unmixed,
+        "unexamined": unexamined,
+    }
 
 
 def _readme(
@@ -291,6 +404,12 @@ def _readme(
     vnnlib_version,
     dtype,
     property_form,
+    tolerance_units,
+    reference,
+    reference_nodes,
+    mix,
+    unmixed,
+    unexamined,
 ) -> str:
     versions = ", ".join(f"{p} {importlib.metadata.version(p)}" for p in ("torch", "onnx", "numpy"))
     form = {
@@ -303,7 +422,8 @@ def _readme(
     property_text = {
         "compact": "The network ends in each verified keypoint's worst margin, the least "
         "`y_t − y_j` over its other cells j (t: its target cell; the minimum a ReLU tree, "
-        "`min(a, b) = a − relu(a − b)`, of ONNX `Gather`, `Sub`, `Relu`, `Concat`): "
+        "`min(a, b) = a − relu(a − b)`, of ONNX `Slice`, `Sub`, `Concat`, `Reshape` and "
+        "`Relu`, no `Gather`): "
         "one output `Y_i` per verified keypoint, in keypoint order (the VNN-LIB header "
         "lists them), and one disjunct `Y_i ≤ 0` per output, the same verdict as one "
         "disjunct `Y_j ≥ Y_t` per competing cell (property form `full`) in a file of a few "
@@ -326,7 +446,7 @@ def _readme(
         "`annotations.json` and the perturbation sets' `meta.json`)",
         f"- {len(sizes)} instances, input form `{input_form}`, property form "
         f"`{property_form}`, ONNX {dtype}, VNN-LIB {vnnlib_version}, timeout "
-        f"{_num(timeout)} s each",
+        f"{_num(timeout)} s each, tolerance reading `{tolerance_units}`",
         "",
         "Layout as in the VNN-COMP benchmarks: `onnx/NAME.onnx`, `vnnlib/NAME.vnnlib`, and "
         "`instances.csv` with one row `onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT` per "
@@ -344,8 +464,13 @@ def _readme(
         "The network is the study's *proxy*: the trained heatmap backbone, then per "
         "keypoint an average pooling of its heatmap channel into cells of side 2δv + 1 "
         "centred on the rounded ground-truth keypoint (the tolerances δv of the allocation "
-        "`κ |M| δv ≤ α ε` at the seed's nominal pose, ε = α·[10°, 10°, 10°, 4, 4, 20 m]), "
-        "the cells of all keypoints concatenated. Its batch norms are folded into the "
+        "`κ |M| δv ≤ α ε` at the seed's nominal pose, ε = α·[10°, 10°, 10°, 4, 4, 20 m], "
+        + {
+            "heatmap": "read in heatmap pixels around the exact keypoints: sound to first order",
+            "paper": "the paper's reading: allocated per image pixel and used as heatmap "
+            "pixels, larger cells",
+        }[tolerance_units]
+        + "), the cells of all keypoints concatenated. Its batch norms are folded into the "
         "convolutions, every value has a static shape (batch 1) and every node input a "
         "name, and the graph passes `onnx.checker`'s full check: ONNX importers such as "
         "onnx2pytorch (α,β-CROWN's, NeuralSAT's) read it.",
@@ -359,11 +484,49 @@ def _readme(
         "Names: `KIND_IMAGEID_HULL_aALPHA_kKAPPA`, HULL `mM_ov` / `mM_nov` (m perturbed "
         "images overlapping the airplane or not) or `lLEVEL` (brightness b, contrast c).",
         "",
-        "## Instances",
-        "",
-        "| name | kind | image | m | overlapping | level | α | κ | n | outputs | disjuncts |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    if reference_nodes is not None:
+        counts = {v: sum(r[0] == v for r in reference.values()) for v in VERDICTS}
+        lines += [
+            "## Reference verdicts",
+            "",
+            "`reference.csv` (`name,status,time,nodes,method,max_nodes`) holds kpstudy's own "
+            f"verdict on each instance: `kpstudy.verify.verify`, method `{REFERENCE_METHOD}`, "
+            f"a budget of {reference_nodes} branch-and-bound nodes and no time budget (the "
+            "verdict does not depend on the machine; the seconds are this machine's), on the "
+            "float32 torch proxy. `holds` is `unsat`, `violated` is `sat`, `unknown` means "
+            "the budget ran out: a hard case. Counts: "
+            + ", ".join(f"{counts[v]} {v}" for v in VERDICTS)
+            + ".",
+            "",
+        ]
+    if mix is not None:
+        lines += [
+            "Selection (`mix` = " + str(mix) + "): the grid was walked in order and an "
+            "instance kept only while its verdict's class (holds, violated, unknown) had "
+            f"fewer than {mix} kept instances; the walk stopped once every class had {mix}. "
+            + (
+                f"Left out for a full class: {len(unmixed)} (listed below)"
+                if unmixed
+                else "None was left out for a full class"
+            )
+            + (
+                f", and the grid's last {unexamined} were never built."
+                if unexamined
+                else "; the whole grid was examined."
+            )
+            + "".join(
+                f" No `{v}` instance was found: the class is empty."
+                for v in VERDICTS
+                if not counts[v]
+            ),
+            "",
+        ]
+    header = "| name | kind | image | m | overlapping | level | α | κ | n | cells | outputs |"
+    header += " disjuncts |"
+    if reference_nodes is not None:
+        header += " kpstudy | nodes |"
+    lines += ["## Instances", "", header, "|---" * header.count(" | ") + "|---|"]
     for instance, name in zip(instances, names):
         if name not in sizes:
             continue
@@ -378,8 +541,13 @@ def _readme(
             _num(instance.kappa),
             *sizes[name],
         ]
+        if reference_nodes is not None:
+            cells += [reference[name][0], reference[name][2]]
         lines.append("| " + " | ".join(map(str, cells)) + " |")
     if skipped:
         lines += ["", "## Left out", "", "Seed images that cannot be certified:", ""]
         lines += [f"- {name}: {reason}" for name, reason in skipped]
+    if unmixed:
+        lines += ["", "## Not kept by the mix", "", "Their class was full (kpstudy's verdict):"]
+        lines += [""] + [f"- {name}: {status}" for name, status in unmixed]
     return "\n".join(lines) + "\n"
