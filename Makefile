@@ -8,7 +8,7 @@ PROFILE ?= quick
 SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1 libgbm1 libgl1-mesa-dri
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system venv test test-fast lint reproduce retrain-friendly bench clean
+.PHONY: setup system venv neuralsat test test-fast lint reproduce retrain-friendly bench clean
 
 setup: system $(STAMP)
 
@@ -30,7 +30,22 @@ $(STAMP): environment.txt pyproject.toml | $(VENV)/bin/python
 	$(PY) -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $@
 
-test: setup
+# NeuralSAT in its own environment (its pins clash with kpstudy's: environment-neuralsat.txt),
+# for tests/test_neuralsat.py, which skips where it is missing.
+NEURALSAT_VENV := .venv-neuralsat
+NEURALSAT_STAMP := $(NEURALSAT_VENV)/.installed
+
+neuralsat: $(NEURALSAT_STAMP)
+
+$(NEURALSAT_VENV)/bin/python:
+	$(PYTHON) -m venv $(NEURALSAT_VENV)
+
+$(NEURALSAT_STAMP): environment-neuralsat.txt | $(NEURALSAT_VENV)/bin/python
+	$(NEURALSAT_VENV)/bin/python -m pip install -q --disable-pip-version-check --no-deps \
+		-r environment-neuralsat.txt
+	touch $@
+
+test: setup neuralsat
 	$(PY) -m pytest -q
 
 test-fast: setup
@@ -52,4 +67,4 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) $(NEURALSAT_VENV) .pytest_cache .ruff_cache .hypothesis

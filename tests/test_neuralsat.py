@@ -1,0 +1,157 @@
+"""NeuralSAT as a second outside oracle for :func:`kpstudy.verify.verify`, beside Marabou
+(tests/test_marabou.py): it reads the exported ONNX + VNN-LIB files with its own readers
+and decides them, and every instance that both decide must get the same verdict (``unsat``
+⇔ ``holds``, ``sat`` ⇔ ``violated``), each of its counterexamples a point of the hull that
+fails in float64 on the torch model.
+
+NeuralSAT 0.2.17 lives in its own environment, .venv-neuralsat (``make neuralsat``,
+environment-neuralsat.txt; ``make test`` makes it), as its pins clash with kpstudy's; it
+runs as a child process (tests/neuralsat_worker.py), one per instance, with an iteration
+budget. Where the environment is missing the module is skipped.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from kpstudy.verify import verify
+from kpstudy.verify.export import export_instance, point_of_input
+from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
+from tests.tiny_proxies import make_instance
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHON = ROOT / ".venv-neuralsat" / "bin" / "python"
+WORKER = Path(__file__).with_name("neuralsat_worker.py")
+
+if not PYTHON.is_file():
+    pytest.skip(
+        f"NeuralSAT's environment {PYTHON.parent.parent.name} is missing: `make neuralsat` "
+        "makes it (`make test` does)",
+        allow_module_level=True,
+    )
+
+pytestmark = [pytest.mark.neuralsat, pytest.mark.slow]
+
+#: NeuralSAT's own ``--timeout``: its attacks before the search get a tenth of it, and at
+#: 30 s or less it leaves out its restarts and MIP tightening (gurobipy's pip license is
+#: size-limited). Its budget is :data:`ITERATIONS`; this one decides only on a machine so
+#: slow that an instance would count as undecided.
+SECONDS = 30
+#: NeuralSAT's budget: branch-and-bound iterations (its ``max_iterations`` setting), after
+#: which it answers ``early_stop``.
+ITERATIONS = 500
+#: Seconds before a NeuralSAT process counts as hung (it ran at most 40 s here).
+HANG = 600
+#: Counterexamples' float64 worst margins may exceed 0 by this much, times 1 + max |y(X0)|:
+#: NeuralSAT checks its points in float32.
+TOLERANCE = 1e-5
+
+
+def neuralsat(onnx_path, vnnlib_path, folder: Path):
+    """NeuralSAT on one instance: ``(status, x, seconds)``, ``status`` its answer
+    (``'sat'``, ``'unsat'``, ``'timeout'``, ``'early_stop'``, …), ``x`` the input of a
+    ``sat`` answer (ndarray, ONNX input order) or None, ``seconds`` the wall time of the
+    process. A process that writes no answer fails the test with its last output lines."""
+    settings, result = folder / "neuralsat.json", folder / "neuralsat.txt"
+    settings.write_text(json.dumps({"max_iterations": ITERATIONS}))
+    command = [PYTHON, WORKER, "--net", onnx_path, "--spec", vnnlib_path, "--device", "cpu"]
+    command += ["--verbosity", "0", "--timeout", str(SECONDS), "--setting_file", settings]
+    command += ["--result_file", result, "--export_cex"]
+    start = time.perf_counter()
+    done = subprocess.run(
+        [str(c) for c in command], capture_output=True, text=True, timeout=HANG, cwd=folder
+    )
+    seconds = time.perf_counter() - start
+    tail = (done.stdout + done.stderr).strip().splitlines()[-15:]
+    assert done.returncode == 0 and result.is_file(), (onnx_path, done.returncode, tail)
+    status, *lines = result.read_text().splitlines()
+    values = {int(k): float(v) for k, v in re.findall(r"\(X_(\d+) (\S+?)\)", "\n".join(lines))}
+    x = np.array([values[k] for k in sorted(values)]) if values else None
+    assert (status == "sat") == (x is not None), (onnx_path, status, lines[:3])
+    return status, x, seconds
+
+
+def check_counterexample(model, hull, spec, x):
+    """``x`` (a ``sat`` answer's box input) is a point of the hull whose float64 worst
+    margin on ``model`` is ≤ 0, up to :data:`TOLERANCE`; returns that margin."""
+    lam = point_of_input(hull, x[None], "box")
+    assert hull.contains_lambda(lam, tol=1e-6).all(), lam
+    double = copy.deepcopy(model).double()
+    with torch.no_grad():
+        scale = 1 + double(hull.vertices[:1].double()).abs().max().item()
+        margin = spec.margins(double(hull.image(lam, dtype=torch.float64))).min().item()
+    assert margin <= TOLERANCE * scale, (margin, scale)
+    return margin
+
+
+@pytest.mark.parametrize("form", ["compact", "full"])
+def test_neuralsat_agrees_with_verify(tmp_path, form):
+    """On 12 tiny keypoint-like proxies (tests/tiny_proxies.py; n = 1…4, box input form)
+    NeuralSAT answers every instance (it loads them all), decides at least 10, each as
+    ``verify`` decides it (both answers among them), every counterexample a real one."""
+    rows = []
+    for i in range(12):
+        model, hull = make_instance(i)
+        spec = model.spec
+        start = time.perf_counter()
+        ours = verify(model, hull, spec, timeout=600, max_nodes=1000)
+        ours_time = time.perf_counter() - start
+        folder = tmp_path / str(i)
+        info = export_instance(folder, model, hull, spec, property_form=form)
+        status, x, seconds = neuralsat(info["onnx"], info["vnnlib"], folder)
+        rows.append((i, hull.n, ours.status, status, ours_time, seconds))
+        if status in ("sat", "unsat") and ours.status != "unknown":
+            assert {"sat": "violated", "unsat": "holds"}[status] == ours.status, rows[-1]
+        if status == "sat":
+            check_counterexample(model, hull, spec, x)
+    decided = [r for r in rows if r[3] in ("sat", "unsat") and r[2] != "unknown"]
+    holds = sum(r[2] == "holds" for r in decided)
+    print(
+        f"\nNeuralSAT on {len(rows)} {form}-form instances: {len(decided)} decided by both "
+        f"({holds} unsat/holds, {len(decided) - holds} sat/violated), all agreeing; "
+        f"NeuralSAT {sum(r[5] for r in rows):.1f} s in all (max {max(r[5] for r in rows):.1f} "
+        f"s, process start included), verify {sum(r[4] for r in rows):.2f} s (max "
+        f"{max(r[4] for r in rows):.2f} s)"
+    )
+    assert len(decided) >= 10, rows
+    assert holds >= 3 and len(decided) - holds >= 3, rows  # both answers are exercised
+
+
+def test_neuralsat_reads_the_study_benchmark(study, tmp_path):  # noqa: F811
+    """The tiny study's exported benchmark (the trained CNN's proxy: cell pooling with
+    ``Pad``, ``AveragePool`` and ``Slice``, then the compact worst-margin tree;
+    tests/test_campaign.py): NeuralSAT decides every instance as reference.csv (kpstudy's
+    verdict) has it, and each counterexample is one for the proxy in float64."""
+    from kpstudy.certify.allocation_method import build_instance
+    from kpstudy.study.campaign import _context, grid, instance_vertices
+    from kpstudy.study.vnncomp import export_benchmark, instance_name
+
+    data, checkpoint = study
+    instances = grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)
+    out = tmp_path / "bench"
+    export_benchmark(checkpoint, data, out, instances, reference_nodes=40)
+    with open(out / "reference.csv", newline="") as f:
+        reference = {row["name"]: row["status"] for row in csv.DictReader(f)}
+    backbone, seed_of = _context(str(checkpoint), str(data))
+    for instance in instances:
+        name = instance_name(instance)
+        folder = tmp_path / name
+        folder.mkdir()
+        onnx_path, vnnlib_path = out / "onnx" / f"{name}.onnx", out / "vnnlib" / f"{name}.vnnlib"
+        status, x, seconds = neuralsat(onnx_path, vnnlib_path, folder)
+        print(f"\nNeuralSAT on {name}: {status} in {seconds:.1f} s; kpstudy {reference[name]}")
+        assert {"sat": "violated", "unsat": "holds"}.get(status) == reference[name], status
+        if status == "sat":
+            vertices = instance_vertices(instance, data)
+            built = build_instance(backbone, vertices, seed_of(instance.image_id))
+            check_counterexample(built.proxy, built.hull, built.spec, x)
