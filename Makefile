@@ -52,8 +52,8 @@ test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks
-	$(VENV)/bin/ruff format --check kpstudy data_gen tests benchmarks
+	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks docs/examples
+	$(VENV)/bin/ruff format --check kpstudy data_gen tests benchmarks docs/examples
 
 # The main job: everything that exists so far, at the chosen profile.
 reproduce: setup
