@@ -8,7 +8,7 @@ PROFILE ?= quick
 SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1 libgbm1 libgl1-mesa-dri
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system venv neuralsat test test-fast lint reproduce retrain-friendly bench clean
+.PHONY: setup system venv neuralsat test test-fast lint docs reproduce retrain-friendly bench clean
 
 setup: system $(STAMP)
 
@@ -52,8 +52,15 @@ test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks docs/examples
-	$(VENV)/bin/ruff format --check kpstudy data_gen tests benchmarks docs/examples
+	$(VENV)/bin/ruff check kpstudy data_gen tests benchmarks docs/examples docs/api
+	$(VENV)/bin/ruff format --check kpstudy data_gen tests benchmarks docs/examples docs/api
+
+# The API reference: Sphinx + numpydoc over the docstrings (docs/api), HTML in docs/_build/html;
+# any warning fails it (tests/test_api_docs.py builds it the same way). -E re-reads every
+# page: an incremental build would not repeat the warnings of a page it does not re-read.
+docs: setup
+	$(PY) -m sphinx -b html -E -W --keep-going -q docs/api docs/_build/html
+	@echo "API reference: docs/_build/html/index.html"
 
 # The main job: everything that exists so far, at the chosen profile.
 reproduce: setup
@@ -67,4 +74,4 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) $(NEURALSAT_VENV) .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) $(NEURALSAT_VENV) .pytest_cache .ruff_cache .hypothesis docs/_build

@@ -14,6 +14,18 @@ from kpstudy.cli import interrupted
 
 
 def main(argv=None) -> int:
+    """Run one ``python -m data_gen`` command.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments after ``data_gen`` (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0, or 130 after Ctrl-C (bad arguments exit with 2).
+    """
     parser = argparse.ArgumentParser(prog="data_gen", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 

@@ -11,6 +11,7 @@ from kpstudy.models.cnn import (
 )
 from kpstudy.models.resnet import HeatmapResNet18
 
+#: The backbone classes by the name :func:`build_backbone` takes.
 BACKBONES = {
     "cnn": HeatmapCNN,
     "cnn_affine": HeatmapCNNAffineDecoder,

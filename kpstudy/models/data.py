@@ -22,6 +22,7 @@ from kpstudy.models.preprocess import (
     to_input_pixels,
 )
 
+#: The dataset's splits, the names :func:`load_keypoint_set` takes.
 SPLITS = ("train", "val", "test")
 
 

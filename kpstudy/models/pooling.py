@@ -174,9 +174,9 @@ class CellAvgPool2d(nn.Module):
     n_v, n_h : int
         Number of cells along rows and columns.
 
-    Shape
+    Notes
     -----
-    Input ``(B, 1, H, W)`` → output ``(B, 1, n_v, n_h)`` (channel dim kept);
+    Shapes: input ``(B, 1, H, W)`` → output ``(B, 1, n_v, n_h)`` (channel dim kept);
     input ``(B, H, W)`` → output ``(B, n_v, n_h)``.
 
     Examples

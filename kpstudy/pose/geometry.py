@@ -19,11 +19,13 @@ from scipy.spatial.transform import Rotation
 
 from kpstudy import _checks
 
+#: scipy's extrinsic Euler sequence of ``ξ``'s angles: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
 EULER_SEQ = "xyz"
 #: The six pose axes, in the order of ``ξ`` and of every pose error.
 POSE_AXES = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 #: The paper's tolerance scale: ``Ξ = {|δξ| ≤ α·[EPS_R, EPS_T]}`` (degrees, metres).
 EPS_R = np.array([10.0, 10.0, 10.0])
+#: The translation part of the tolerance scale, metres (``EPS_R``: the angles, degrees).
 EPS_T = np.array([4.0, 4.0, 20.0])
 
 
@@ -147,7 +149,7 @@ def euler_from_matrix_torch(R: torch.Tensor) -> torch.Tensor:
     """``euler_from_matrix`` for tensors ``(..., 3, 3)`` → ``(..., 3)`` degrees.
 
     Closed form of the ``'xyz'`` convention; equals scipy's away from gimbal lock
-    (|pitch| < 90°), which an overhead camera never approaches.
+    (``|pitch| < 90°``), which an overhead camera never approaches.
     """
     roll = torch.atan2(R[..., 2, 1], R[..., 2, 2])
     pitch = torch.asin(torch.clamp(-R[..., 2, 0], -1.0, 1.0))

@@ -5,7 +5,7 @@ allocated half-widths δV (the box HR):
 
 * soundness — random *vertices* of HR added to V (``V̂ = V + A ⊙ δV``, A ∈ {±1}),
   PnP re-solved from the nominal pose; the fraction whose pose error lies in Ξ;
-* completeness — pose errors δξ uniform in Ξ = {|δξ| ≤ ε}, keypoints re-projected;
+* completeness — pose errors δξ uniform in ``Ξ = {|δξ| ≤ ε}``, keypoints re-projected;
   the fraction whose keypoint errors lie in HR.
 
 Both are vectorised over images and samples; each image draws from its own stream

@@ -4,8 +4,8 @@
   keypoint, mean ± std over images, horizontal (δu) and vertical (δv) panels, one series per
   tolerance factor α (ε = α·[10°, 10°, 10°, 4, 4, 20 m], docs/design.md §3, §4.3).
 * **F-kps** — for one image, keypoint deviations caused by pose errors drawn uniformly in
-  Ξ = {|δξ| ≤ ε} (the completeness samples of docs/design.md §4.9) against the allocated box
-  ``[−δu, δu] × [−δv, δv]`` of a few keypoints.
+  ``Ξ = {|δξ| ≤ ε}`` (the completeness samples of docs/design.md §4.9) against the allocated
+  box ``[−δu, δu] × [−δv, δv]`` of a few keypoints.
 
 Data and plotting are separate: :func:`allocation_frame` and
 :func:`keypoint_deviation_samples` return arrays a test can check, :func:`plot_allocation`

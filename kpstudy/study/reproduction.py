@@ -39,6 +39,7 @@ from pathlib import Path
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
+#: The stages of :func:`reproduce`, in the order they run.
 STAGES = ("data", "train", "notebooks", "report")
 #: The verification-friendly CNN's backbone (:mod:`kpstudy.models.cnn`), also its name in
 #: the study's tables and under ``models/``.
@@ -281,6 +282,7 @@ _QUICK = Profile(
     precision="bfloat16",
 )
 
+#: The named profiles (:func:`profile`): ``quick``, ``standard`` and ``paper``.
 PROFILES = {
     "quick": _QUICK,
     # The study's scale on 2 cores: the quick profile's dataset and models, 60 test seed

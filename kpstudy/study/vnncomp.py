@@ -41,6 +41,7 @@ import torch
 
 __all__ = ["DTYPES", "REFERENCE_METHOD", "VERDICTS", "export_benchmark", "instance_name"]
 
+#: The exported networks' dtypes by name (``dtype`` of :func:`export_benchmark`).
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: The bound method of the reference verdicts (:func:`kpstudy.verify.verify`'s default).
 REFERENCE_METHOD = "auto"

@@ -43,7 +43,7 @@ class ConvexHull:
 
     Parameters
     ----------
-    vertices : Tensor, shape (n+1, *S)
+    vertices : Tensor, shape ``(n+1, *S)``
         ``X0`` (the seed image) first, then the ``n`` perturbed images (preprocessed, as
         the model takes them; ``S`` is e.g. ``(3, 64, 64)``).
 
