@@ -1,4 +1,7 @@
-"""Shared fixtures: overhead views of the canonical 23-keypoint airliner."""
+"""Shared fixtures: overhead views of the canonical 23-keypoint airliner, a rendered tiny
+dataset, and a tiny trained study on it (``study``)."""
+
+import shutil
 
 import numpy as np
 import pytest
@@ -38,3 +41,27 @@ def tiny_dataset(tmp_path_factory):
     return generate_dataset(
         tmp_path_factory.mktemp("tiny") / "data", 20, "160x100", seed=5, progress=False
     )
+
+
+@pytest.fixture(scope="module")
+def study(tiny_dataset, tmp_path_factory):
+    """A copy of the tiny dataset with block and brightness perturbations, and a CNN
+    trained on it for two epochs: ``(data, checkpoint)``. One per test module."""
+    from data_gen.perturb import make_perturbations
+    from kpstudy.models.training import TrainConfig, train
+
+    data = tmp_path_factory.mktemp("study") / "data"
+    shutil.copytree(tiny_dataset, data)
+    for kind in ("blocks", "brightness"):
+        make_perturbations(data, kind, seeds=2, seed=0, input_size=64)
+    checkpoint = data.parent / "cnn.pt"
+    train(data, checkpoint, TrainConfig(epochs=2, batch_size=4, images=8, seed=1), progress=False)
+    return data, checkpoint
+
+
+def seed_image(data_dir, index=0):
+    """Test image ``index`` of the dataset at ``data_dir`` as a seed image (64 px input)."""
+    from kpstudy.certify.allocation_method import SeedImage
+    from kpstudy.models.data import load_keypoint_set
+
+    return SeedImage.from_keypoint_set(load_keypoint_set(data_dir, "test", 64), index)

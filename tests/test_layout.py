@@ -1,14 +1,22 @@
 """The package tree follows the pipeline: each part of kpstudy imports only the parts before
 it (docs/design.md §2, "What each part may import"). Every import of every module of
 kpstudy and data_gen counts, function-level ones included, read with ``ast`` (nothing is
-imported)."""
+imported).
+
+The tests mirror the tree (docs/design.md §2, "Tests"): module ``kpstudy/<package>/<m>.py``
+is tested in ``tests/kpstudy/<package>/test_<m>.py`` (a leading underscore dropped),
+``data_gen/<m>.py`` in ``tests/data_gen/test_<m>.py``; a module without a test file of its
+own is listed in :data:`EXEMPT` with the reason, and a top-level ``tests/test_*.py`` is a
+check across the tree (:data:`ACROSS`)."""
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+TESTS = ROOT / "tests"
 DESIGN = ROOT / "docs" / "design.md"
 
 INFRASTRUCTURE = ("kpstudy", "kpstudy._checks", "kpstudy._lazy", "kpstudy._memo", "kpstudy.io")
@@ -139,14 +147,89 @@ def test_the_design_states_the_rule():
         assert row in text, f"docs/design.md §2 should have the row {row}"
 
 
-def test_a_re_export_reads_the_modules_own_list_or_refuses():
-    import pytest
+# -- the tests' mirror of the tree ---------------------------------------------------------
 
-    from kpstudy._lazy import lazy_exports
-    from kpstudy.pose import allocation
+#: Modules without a test file of their own → the reason.
+EXEMPT = {
+    "kpstudy/__main__.py": "calls kpstudy.cli.main; tests/kpstudy/test_cli.py runs it",
+    "data_gen/__main__.py": "calls data_gen.cli.main; tests/data_gen/test_cli.py runs it",
+}
 
-    names, getattr_, _ = lazy_exports("kpstudy.pose", {"allocation": None})
-    assert names == sorted(allocation.__all__)
-    assert getattr_("allocate_tolerances") is allocation.allocate_tolerances
-    with pytest.raises(ValueError, match=r"^modules: kpstudy.pose.pnp has no literal __all__"):
-        lazy_exports("kpstudy.pose", {"pnp": None})
+#: The top-level test files: checks across the tree or against outside programs → what.
+ACROSS = {
+    "test_layout.py": "the package tree and the tests' mirror of it",
+    "test_readme.py": "the README's worked example, run as written",
+    "test_examples.py": "the runnable examples of docs/examples",
+    "test_api_docs.py": "the API reference's build",
+    "test_marabou.py": "Marabou, an outside oracle for kpstudy.verify",
+    "test_neuralsat.py": "NeuralSAT, a second outside oracle for kpstudy.verify",
+}
+
+#: What else a mirror folder may hold besides test files.
+MIRROR_EXTRAS = ("__init__.py", "conftest.py")
+
+
+def mirror_of(module: Path) -> Path:
+    """The test file of a module file: tests/<its folder>/test_<name>.py, the name without
+    a leading underscore."""
+    relative = module.relative_to(ROOT)
+    return TESTS / relative.parent / f"test_{relative.stem.lstrip('_')}.py"
+
+
+def module_files():
+    return [p for p in modules() if p.name != "__init__.py"]
+
+
+def mirror_files():
+    return sorted(p for package in ("kpstudy", "data_gen") for p in (TESTS / package).rglob("*.py"))
+
+
+@pytest.mark.parametrize("path", module_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_module_has_its_test_file_or_a_reason(path):
+    relative = str(path.relative_to(ROOT))
+    test_file = mirror_of(path)
+    if relative in EXEMPT:
+        assert not test_file.exists(), f"{relative} has {test_file.relative_to(ROOT)}: unlist it"
+    else:
+        assert test_file.is_file(), (
+            f"add {test_file.relative_to(ROOT)}, or list {relative} in EXEMPT with the reason"
+        )
+
+
+def test_every_exemption_names_a_module():
+    missing = [name for name in EXEMPT if not (ROOT / name).is_file()]
+    assert not missing, f"EXEMPT names no module: {missing}"
+
+
+@pytest.mark.parametrize("path", mirror_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_mirrored_test_file_names_a_module(path):
+    """tests/<package>/test_<m>.py tests <package>/<m>.py (or _<m>.py): a test of no
+    module, or a helper in a mirror folder (helpers go in tests/helpers), is refused."""
+    relative = path.relative_to(TESTS)
+    if path.name in MIRROR_EXTRAS:
+        assert (ROOT / relative.parent / "__init__.py").is_file(), f"{relative.parent}: no package"
+        return
+    assert path.name.startswith("test_"), f"tests/{relative}: helpers go in tests/helpers/"
+    name = path.stem.removeprefix("test_")
+    folder = ROOT / relative.parent
+    tested = [folder / f"{prefix}{name}.py" for prefix in ("", "_")]
+    assert any(p.is_file() for p in tested), f"tests/{relative} mirrors no module"
+    assert (path.parent / "__init__.py").is_file(), f"tests/{relative.parent} needs __init__.py"
+
+
+def test_the_top_level_tests_are_the_checks_across_the_tree():
+    found = sorted(p.name for p in TESTS.glob("test_*.py"))
+    unlisted = [name for name in found if name not in ACROSS]
+    assert not unlisted, f"move these to tests/<package>/test_<module>.py, or list them: {unlisted}"
+
+
+def test_the_mirror_does_not_shadow_the_packages_it_tests():
+    """tests/kpstudy and tests/data_gen are the packages tests.kpstudy and tests.data_gen:
+    tests/ itself is never on sys.path, so ``import kpstudy`` finds the repository's."""
+    import data_gen
+    import kpstudy
+
+    assert Path(kpstudy.__file__).resolve() == ROOT / "kpstudy" / "__init__.py"
+    assert Path(data_gen.__file__).resolve() == ROOT / "data_gen" / "__init__.py"
+    assert TESTS not in {Path(p or ".").resolve() for p in sys.path}
+    assert __name__ == "tests.test_layout"

@@ -12,8 +12,9 @@ Marabou 2.0.0's ONNX reader has no ``Pad``, ``AveragePool`` or ``Slice``, so the
 here is one ``Gemm`` (the cell pools' matrices, block-diagonal over the channels); the
 xfail test below records that the study's own proxy is out of its reach, so that it flips
 when Marabou reads it. The compact property form's worst-margin tree is made of
-``Slice`` s too: the instances here (tests/tiny_proxies.py) are exported in the full form
-(one disjunct per margin row), the same verdict (tests/test_verify_export.py).
+``Slice`` s too: the instances here (tests/helpers/tiny_proxies.py) are exported in the
+full form (one disjunct per margin row), the same verdict
+(tests/kpstudy/verify/test_export.py).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from torch import nn
 
 from kpstudy.verify import verify
 from kpstudy.verify.export import export_instance, point_of_input
-from tests.tiny_proxies import SIDE, make_instance
+from tests.helpers.tiny_proxies import SIDE, make_instance
 
 pytest.importorskip("maraboupy")
 

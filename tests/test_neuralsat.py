@@ -26,8 +26,7 @@ import torch
 
 from kpstudy.verify import verify
 from kpstudy.verify.export import export_instance, point_of_input
-from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
-from tests.tiny_proxies import make_instance
+from tests.helpers.tiny_proxies import make_instance
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = ROOT / ".venv-neuralsat" / "bin" / "python"
@@ -127,11 +126,12 @@ def test_neuralsat_agrees_with_verify(tmp_path, form):
     assert holds >= 3 and len(decided) - holds >= 3, rows  # both answers are exercised
 
 
-def test_neuralsat_reads_the_study_benchmark(study, tmp_path):  # noqa: F811
+def test_neuralsat_reads_the_study_benchmark(study, tmp_path):
     """The tiny study's exported benchmark (the trained CNN's proxy: cell pooling with
-    ``Pad``, ``AveragePool`` and ``Slice``, then the compact worst-margin tree;
-    tests/test_campaign.py): NeuralSAT decides every instance as reference.csv (kpstudy's
-    verdict) has it, and each counterexample is one for the proxy in float64."""
+    ``Pad``, ``AveragePool`` and ``Slice``, then the compact worst-margin tree; the
+    ``study`` fixture of tests/conftest.py): NeuralSAT decides every instance as
+    reference.csv (kpstudy's verdict) has it, and each counterexample is one for the proxy
+    in float64."""
     from kpstudy.certify.allocation_method import build_instance
     from kpstudy.study.campaign import _context, grid, instance_vertices
     from kpstudy.study.vnncomp import export_benchmark, instance_name

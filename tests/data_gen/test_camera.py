@@ -1,21 +1,11 @@
+"""data_gen.camera: overhead poses and intrinsics."""
+
 import numpy as np
 import pytest
 
 from data_gen.camera import intrinsics, overhead_poses
-from data_gen.keypoints import AIRLINER_KEYPOINTS, KEYPOINT_NAMES, airliner_keypoints
+from data_gen.keypoints import airliner_keypoints
 from kpstudy.pose.geometry import euler_from_matrix, project_batch
-
-
-def test_keypoints_are_23_named_points_of_an_airliner():
-    P = airliner_keypoints()
-    assert P.shape == (23, 3) and len(set(KEYPOINT_NAMES)) == 23 == len(AIRLINER_KEYPOINTS)
-    extent = P.max(0) - P.min(0)
-    assert 35 <= extent[0] <= 45  # length
-    assert 30 <= extent[1] <= 40  # span
-    left = [n for n in KEYPOINT_NAMES if n.startswith("left_")]
-    for name in left:  # left and right mirror each other about the fuselage axis
-        li, ri = KEYPOINT_NAMES.index(name), KEYPOINT_NAMES.index("right_" + name[5:])
-        np.testing.assert_allclose(P[li] * [1, -1, 1], P[ri])
 
 
 def test_overhead_poses_look_down_and_keep_the_airplane_in_frame():

@@ -1,14 +1,11 @@
-"""The rendered dataset: annotation geometry, masks, COCO format, determinism, CLI errors."""
+"""data_gen.dataset: annotation geometry, masks, COCO format, determinism, interruption."""
 
 import gc
-import json
 import multiprocessing
 import multiprocessing.util
 import os
 import select
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -23,6 +20,7 @@ from data_gen.keypoints import KEYPOINT_NAMES
 from kpstudy.pose.geometry import project
 
 SIZE = "240x150"
+
 HANG = 300  # seconds: only a hang takes this long
 
 
@@ -270,75 +268,6 @@ def test_ctrl_c_while_the_pool_starts_leaves_no_worker_and_no_traceback(
     assert not out.exists()
 
 
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        (["--n", "0"], "n: expected a positive number"),
-        (["--n", "2", "--size", "640by400"], "size: expected WIDTHxHEIGHT"),
-        (["--n", "2", "--size", "8x8"], "size: expected width and height"),
-        (["--n", "2", "--variant", "zeppelin"], "variant: unknown airplane variant 'zeppelin'"),
-        (["--n", "2", "--workers", "0"], "workers: expected a positive integer"),
-        (["--n", "2", "--mesh", "plane.obj"], "mesh, keypoints_json: expected both"),
-    ],
-)
-def test_cli_rejects_bad_arguments_without_output(tmp_path, args, message):
-    out = tmp_path / "out"
-    run = subprocess.run(
-        [sys.executable, "-m", "data_gen", "dataset", "--out", str(out), *args],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode == 2
-    assert message in run.stderr and "data_gen dataset: error:" in run.stderr
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_cli_refuses_non_empty_or_unwritable_output(tmp_path):
-    busy = tmp_path / "busy"
-    busy.mkdir()
-    (busy / "keep.txt").write_text("mine")
-    run = subprocess.run(
-        [sys.executable, "-m", "data_gen", "dataset", "--out", str(busy), "--n", "1"],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode == 2 and "out: directory" in run.stderr and "--overwrite" in run.stderr
-    assert [p.name for p in busy.iterdir()] == ["keep.txt"]
-    blocker = tmp_path / "a_file"
-    blocker.write_text("not a folder")
-    run = subprocess.run(
-        [sys.executable, "-m", "data_gen", "dataset", "--out", str(blocker / "data"), "--n", "1"],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode == 2 and "out: cannot write into" in run.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "busy"]
-
-
-def test_cli_writes_a_dataset(tmp_path):
-    out = tmp_path / "cli"
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "data_gen",
-            "dataset",
-            "--out",
-            str(out),
-            "--n",
-            "2",
-            "--size",
-            "96x60",
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert run.returncode == 0, run.stderr
-    assert "images/s" in run.stdout
-    coco = json.loads((out / "annotations.json").read_text())
-    assert len(coco["images"]) == 2 and coco["images"][0]["width"] == 96
-
-
 def test_parse_size():
     assert parse_size("640x400") == (640, 400) and parse_size((1920, 1200)) == (1920, 1200)
     with pytest.raises(ValueError, match="size"):
@@ -368,16 +297,3 @@ def test_user_mesh_renders_like_a_built_in_variant(tmp_path):
     with pytest.raises(FileNotFoundError, match="mesh_path"):
         generate_dataset(tmp_path / "x", 1, mesh=tmp_path / "no.ply", keypoints_json=json_path)
     assert not (tmp_path / "x").exists()
-
-
-def test_gallery_draws_every_figure(small, tmp_path):
-    from data_gen.gallery import write_gallery
-    from data_gen.perturb import make_perturbations
-
-    make_perturbations(small, "brightness", seeds=1, input_size=32, overwrite=True)
-    paths = write_gallery(tmp_path / "figs", small)
-    names = ["crew_closeup.png", "occluders.png", "perturbations.png", "renders.png"]
-    assert sorted(p.name for p in paths) == names
-    for path in paths:
-        picture = read_image(path)
-        assert picture.shape[0] > 200 and picture.std() > 10  # drawn, not blank

@@ -1,10 +1,12 @@
-"""data_gen.gallery's drawing helpers on synthetic images: labels kept apart, changes
-circled, the perturbation sheet's difference panels."""
+"""data_gen.gallery: its drawing helpers on synthetic images (labels kept apart, changes
+circled, the perturbation sheet's difference panels), and every figure of a small
+rendered dataset."""
 
 import numpy as np
 import pytest
 from matplotlib.patches import Circle
 
+from data_gen.dataset import generate_dataset, read_image
 from data_gen.gallery import change_circles, perturbation_sheet, place_labels
 
 
@@ -72,3 +74,24 @@ def test_sheet_shows_differences_and_circles_local_changes():
         perturbation_sheet([])
     with pytest.raises(ValueError, match="^rows: expected vertices"):
         perturbation_sheet([("x", seed)])
+
+
+SIZE = "240x150"
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return generate_dataset(tmp_path_factory.mktemp("ds") / "data", 8, SIZE, seed=3, progress=False)
+
+
+def test_gallery_draws_every_figure(small, tmp_path):
+    from data_gen.gallery import write_gallery
+    from data_gen.perturb import make_perturbations
+
+    make_perturbations(small, "brightness", seeds=1, input_size=32, overwrite=True)
+    paths = write_gallery(tmp_path / "figs", small)
+    names = ["crew_closeup.png", "occluders.png", "perturbations.png", "renders.png"]
+    assert sorted(p.name for p in paths) == names
+    for path in paths:
+        picture = read_image(path)
+        assert picture.shape[0] > 200 and picture.std() > 10  # drawn, not blank

@@ -1,13 +1,9 @@
+"""data_gen.occluders: the occluder library's assets."""
+
 import numpy as np
 import pytest
 
-from data_gen.occluders import (
-    FAMILIES,
-    OCCLUDER_NAMES,
-    Occluder,
-    build_occluder,
-    occluder_catalog,
-)
+from data_gen.occluders import FAMILIES, OCCLUDER_NAMES, Occluder, build_occluder, occluder_catalog
 
 MIN_PER_FAMILY = {"vehicle": 18, "person": 12, "equipment": 12}
 

@@ -148,6 +148,7 @@ def test_perturb_cli_errors(data, tmp_path):
 # The tiny dataset's objects set (seeds=2, per_seed=4, seed=0) as the code before
 # ``overlapping_share`` wrote it: sha256 of meta.json, and of the decoded pixels in row order.
 DEFAULT_OBJECTS_META = "2db583d8e19e920e1b1e4830c4465c850dabe3dd227e8f4d7ffe7ffd925f9baf"
+
 DEFAULT_OBJECTS_PIXELS = "993e590d5c5c1617fd7b64d83bde2ead348964c8db13c2bb081a51fdb05be7c6"
 
 

@@ -1,11 +1,11 @@
-"""A user's mistakes end in one line naming the argument, exit status 2 and nothing
-written (never a traceback); Ctrl-C ends with status 130 and one line; the notebooks'
-kernels run over IPC, so ``make reproduce`` prints no IPKernel eavesdropping warning."""
+"""kpstudy.cli: a user's mistakes end in one line naming the argument, exit status 2 and
+nothing written (never a traceback), for ``reproduce``'s arguments and every command's
+inputs; Ctrl-C ends ``python -m kpstudy`` and ``python -m data_gen`` with status 130 and
+one line."""
 
 from __future__ import annotations
 
 import io
-import json
 import os
 import select
 import shutil
@@ -17,25 +17,9 @@ import time
 import pytest
 import torch
 
-from data_gen.keypoints import KEYPOINT_NAMES
+from tests.helpers.cli import assert_refused, run_cli
 
 TINY_TRAIN = ["--epochs", "1", "--batch-size", "4", "--images", "8", "--threads", "1"]
-
-
-def run_cli(module: str, *args) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True
-    )
-
-
-def assert_refused(proc: subprocess.CompletedProcess, *words: str) -> None:
-    """Exit 2, no traceback, one line on stderr naming ``words``."""
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
-    for word in words:
-        assert word in lines[0], lines[0]
 
 
 @pytest.fixture
@@ -115,41 +99,6 @@ def test_train_on_cuda_without_cuda_is_refused(tiny_dataset, tmp_path):
     assert not out.exists()
 
 
-def test_a_flat_single_triangle_mesh_is_refused_before_any_output(tmp_path):
-    mesh = tmp_path / "triangle.obj"
-    mesh.write_text("v -20 -20 0\nv 20 -20 0\nv 0 20 0\nf 1 2 3\n")
-    # 23 distinct keypoints on the triangle: only the mesh is wrong
-    keypoints = [
-        {"name": name, "xyz": [-8 + 4 * (i % 5), -10 + 3 * (i // 5), 0]}
-        for i, name in enumerate(KEYPOINT_NAMES)
-    ]
-    (tmp_path / "keypoints.json").write_text(json.dumps({"keypoints": keypoints}))
-    work = tmp_path / "work"
-    work.mkdir()
-    proc = run_cli(
-        "data_gen",
-        "dataset",
-        "--out",
-        work / "o_mesh2",
-        "--n",
-        "2",
-        "--size",
-        "160x100",
-        "--mesh",
-        mesh,
-        "--keypoints",
-        tmp_path / "keypoints.json",
-    )
-    assert_refused(proc, "mesh_path:", "three dimensions")
-    assert not any(work.iterdir())  # no .o_mesh2.partial/
-
-
-def test_a_negative_seed_is_refused_before_any_output(tmp_path):
-    proc = run_cli("data_gen", "dataset", "--out", tmp_path / "data", "--n", "2", "--seed", "-1")
-    assert_refused(proc, "seed:", "non-negative")
-    assert not any(tmp_path.iterdir())  # no .data.partial/
-
-
 @pytest.mark.parametrize(
     "command", [["kpstudy", "train"], ["data_gen", "perturb", "--kind", "blocks"]]
 )
@@ -164,16 +113,6 @@ def test_a_corrupt_coco_file_is_named(tmp_path, command):
     proc = run_cli(module, *args, "--data", data)
     assert_refused(proc, "data_dir:", str(annotations), "not valid JSON")
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["annotations.json", "data"]
-
-
-def test_verify_refuses_a_hull_of_another_dtype_than_the_model():
-    from kpstudy.verify import ArgmaxSpec, ConvexHull, verify
-    from tests.verify_nets import MixedNet, hull_vertices
-
-    net = MixedNet(0).eval()  # float32
-    hull = ConvexHull(hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64))
-    with pytest.raises(ValueError, match=r"input_set: expected images of the model's dtype"):
-        verify(net, hull, ArgmaxSpec([3, 3], [0, 0]), timeout=5)
 
 
 #: Seconds the Ctrl-C test waits for the CLI's progress bar and then for its exit. They
@@ -328,30 +267,21 @@ def test_ctrl_c_starts_its_line_whenever_it_comes(monkeypatch, moment, ctrl_c, w
     assert not getattr(tqdm, "_instances", ())
 
 
-def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
-    import nbformat
-    import papermill
-
-    from kpstudy.study.reproduction import _ipc_kernel
-
-    notebook = nbformat.v4.new_notebook()
-    notebook.cells = [nbformat.v4.new_code_cell("x = 1"), nbformat.v4.new_code_cell("x * 2")]
-    notebook.cells[0].metadata["tags"] = ["parameters"]
-    notebook.metadata["kernelspec"] = {"name": "python3", "language": "python"}
-    nbformat.write(notebook, tmp_path / "tiny.ipynb")
-    sockets = tmp_path / "sockets"
-    sockets.mkdir()
-    papermill.execute_notebook(
-        str(tmp_path / "tiny.ipynb"),
-        str(tmp_path / "out.ipynb"),
-        parameters={"x": 21},
-        cwd=str(tmp_path),
-        progress_bar=False,
-        kernel_name="python3",
-        config=_ipc_kernel(str(sockets)),
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--profile", "huge"], "profile: expected one of"),
+        (["--images", "0"], "images: expected a positive number"),
+        (["--seeds", "500"], "seeds: expected at most perturbed_seeds=8"),
+        (["--stages", "data", "fly"], "stages: expected some of"),
+    ],
+)
+def test_bad_arguments_exit_non_zero_and_write_nothing(tmp_path, args, message):
+    proc = subprocess.run(
+        [sys.executable, "-m", "kpstudy", "reproduce", "--out", str(tmp_path), *args],
+        capture_output=True,
+        text=True,
     )
-    assert "eavesdropping" not in capfd.readouterr().err  # the kernel's own stderr too
-    result = nbformat.read(tmp_path / "out.ipynb", as_version=4).cells[-1].outputs
-    assert result[0]["data"]["text/plain"] == "42"
-    assert not any(sockets.iterdir())  # the kernel's sockets are gone with it
-    assert not list(tmp_path.glob("kernel-*"))
+    assert proc.returncode == 2
+    assert message in proc.stderr
+    assert not any(tmp_path.iterdir())

@@ -1,129 +1,33 @@
-"""kpstudy.certify.pose_bound_method's exact decision (issue 27, part 2): PnP over every
-combination of region pixels decides where there are few enough, the linearised bound only
-above that, and the tables count which rule decided. The method's seams (the region search,
-the enumeration, the attack, its limits) are patched where it looks them up, in
-:mod:`kpstudy.certify.pose_bound_method`; the parts' own code in
-:mod:`~kpstudy.certify.pose_bound_regions`, :mod:`~kpstudy.certify.pose_bound_rules` and
-:mod:`~kpstudy.certify.pose_bound_attack`."""
+"""kpstudy.certify.pose_bound_method: certify's pose-bound record on the tiny trained study,
+and the exact decision (issue 27, part 2): PnP over every combination of region pixels
+decides where there are few enough, the linearised bound only above that. The method's
+seams (the region search, the enumeration, the attack, its limits) are patched where it
+looks them up, in :mod:`kpstudy.certify.pose_bound_method`; the parts' own code is tested
+in test_pose_bound_regions.py, test_pose_bound_rules.py and test_pose_bound_attack.py."""
 
-import io
 import itertools
 import types
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
-from torch import nn
 
-from kpstudy.certify import pose_bound_attack as attack
+from data_gen.perturb import hull_vertices
 from kpstudy.certify import pose_bound_method as pb
 from kpstudy.certify import pose_bound_regions as pb_regions
 from kpstudy.certify import pose_bound_rules as rules
-from kpstudy.certify.allocation_method import SeedImage
+from kpstudy.certify.allocation_method import target_pose_errors
+from kpstudy.certify.hull import certify
+from kpstudy.certify.pose_bound_regions import search_regions
 from kpstudy.models.heads import argmax_keypoints
 from kpstudy.models.pooling import num_cells
-from kpstudy.models.preprocess import scale_factors, to_image_pixels, to_input_pixels
-from kpstudy.pose.geometry import euler_from_matrix, wrap_degrees
+from kpstudy.models.preprocess import to_image_pixels, to_model_input
+from kpstudy.models.training import load_checkpoint
+from kpstudy.pose.geometry import EPS_R, EPS_T, euler_from_matrix, wrap_degrees
 from kpstudy.pose.pnp import solve_pnp, solve_pnp_batch
-from kpstudy.study import tables
 from kpstudy.verify import ConvexHull, Regions
-from tests.conftest import IMAGE_SIZE, views
-
-HM = 64  # heatmap side
-
-
-class _Peaks(nn.Module):
-    """A backbone whose heatmaps peak at fixed pixels ``(K, 2)`` (u, v), and at ``moved``
-    instead for images brighter than 0.5 (the hull's second vertex)."""
-
-    heatmap_size = input_size = HM
-
-    def __init__(self, peaks, moved=None):
-        super().__init__()
-        self.peaks = np.asarray(peaks, dtype=np.int64)
-        self.moved = self.peaks if moved is None else np.asarray(moved, dtype=np.int64)
-
-    def forward(self, x):
-        out = torch.zeros(len(x), len(self.peaks), HM, HM)
-        for b, image in enumerate(x):
-            peaks = self.moved if image.mean() > 0.5 else self.peaks
-            for k, (u, v) in enumerate(peaks):
-                out[b, k, v, u] = 1.0
-        return out
-
-
-class _Ramp(nn.Module):
-    """A differentiable backbone: keypoint k's heatmap is ``1 − b`` at ``peaks[k]`` and
-    ``b·gain[k]`` at ``moved[k]`` (0 elsewhere), ``b`` the image's mean brightness."""
-
-    heatmap_size = input_size = HM
-
-    def __init__(self, peaks, moved, gain):
-        super().__init__()
-        self.peaks, self.moved = (np.asarray(p).astype(np.int64) for p in (peaks, moved))
-        self.gain = torch.as_tensor(gain, dtype=torch.float32)
-
-    def forward(self, x):
-        b = x.flatten(1).mean(1)[:, None]  # (B, 1)
-        out = x.new_zeros(len(x), len(self.peaks), HM * HM)
-        index = lambda p: torch.as_tensor(p[:, 1] * HM + p[:, 0])[None, :, None]  # noqa: E731
-        K = len(self.peaks)
-        out = out.scatter_add(
-            2, index(self.peaks).expand(len(x), -1, 1), (1 - b).expand(-1, K)[..., None]
-        )
-        moved = (b * self.gain.to(x.dtype)).expand(-1, K)[..., None]
-        out = out.scatter_add(2, index(self.moved).expand(len(x), -1, 1), moved)
-        return out.view(len(x), -1, HM, HM)
-
-
-def test_the_targeted_witness_reaches_joint_combinations_and_only_those():
-    peaks = np.array([[10, 10], [20, 20], [30, 30]])
-    moved = peaks + [1, 0]
-    # Keypoint k moves once b·gain_k > 1 − b: at b > 1/(1 + gain_k) = 0.75, 0.5, 0.25.
-    model = _Ramp(peaks, moved, [1 / 3, 1.0, 3.0])
-    hull = _hull()
-    seed = [torch.zeros(1, dtype=torch.float64)]
-    lam = attack.targeted_witness(model, hull, moved, seed)
-    assert lam is not None and lam.item() > 0.75
-    heat = model(hull.image(lam[None], dtype=torch.float32))
-    assert np.array_equal(argmax_keypoints(heat)[0].numpy(), moved)
-    # Keypoint 0 at its peak (b < 0.75) with keypoint 1 moved (b > 0.5): reachable.
-    both = np.stack([peaks[0], moved[1], moved[2]])
-    assert 0.5 < attack.targeted_witness(model, hull, both, seed).item() < 0.75
-    # Keypoint 1 at its peak (b < 0.5) with keypoint 0 moved (b > 0.75): no image does it.
-    assert (
-        attack.targeted_witness(model, hull, np.stack([moved[0], peaks[1], moved[2]]), seed) is None
-    )
-
-
-def test_a_free_keypoint_and_alternative_targets():
-    peaks = np.array([[10, 10], [20, 20], [30, 30]])
-    moved = peaks + [1, 0]
-    model = _Ramp(peaks, moved, [1 / 3, 1.0, 3.0])
-    hull, seed = _hull(), [torch.zeros(1, dtype=torch.float64)]
-    # Keypoint 0 moved with keypoint 1 at its peak is no image's argmax; keypoint 0 moved
-    # with keypoint 1 free is (b > 0.75).
-    unreachable = np.stack([moved[0], peaks[1], moved[2]])
-    assert attack.targeted_witness(model, hull, unreachable, seed) is None
-    free = unreachable.copy()
-    free[1:] = -1
-    assert attack.targeted_witness(model, hull, free, seed).item() > 0.75
-    # Several targets at once: the first reached is returned.
-    lam = attack.targeted_witness(model, hull, np.stack([unreachable, free]), seed)
-    assert lam is not None and lam.item() > 0.75
-    with pytest.raises(ValueError, match="targets: expected shape"):
-        attack.targeted_witness(model, hull, np.zeros(2, dtype=np.int64), seed)
-
-
-@pytest.fixture(scope="module")
-def scene(P, K):
-    """A seed image (exact keypoints), its nominal pose and the rounded heatmap pixels."""
-    R, t, V = views(1, 3, K, P)
-    seed = SeedImage(0, V[0], K, P, IMAGE_SIZE)
-    factors = scale_factors(IMAGE_SIZE, HM)
-    centers = np.clip(np.rint(to_input_pixels(V[0], factors)), 0, HM - 1)
-    return seed, R[0], t[0], factors, centers
+from tests.conftest import seed_image
+from tests.helpers.pose_bound import HM, Peaks, Ramp, far_tolerance, regions_with, unit_hull
 
 
 @pytest.fixture
@@ -148,10 +52,6 @@ def _with_regions(monkeypatch, pixels, witnesses=()):
     monkeypatch.setattr(pb, "search_regions", lambda *args, **kwargs: (regions, pixels))
 
 
-def _hull():
-    return ConvexHull(torch.stack([torch.zeros(1, 2, 2), torch.ones(1, 2, 2)]))
-
-
 def _brute_force(seed, positions, R, t):
     """The largest pose error per axis, one OpenCV PnP per combination."""
     worst = np.zeros(6)
@@ -164,23 +64,15 @@ def _brute_force(seed, positions, R, t):
     return worst
 
 
-def _regions_with(centers, moves):
-    """Each keypoint's rounded pixel, plus the pixels ``centers[k] + offset`` of ``moves``."""
-    pixels = [[c] for c in centers]
-    for k, offset in moves:
-        pixels[k].append(centers[k] + np.asarray(offset))
-    return pixels
-
-
 def _decide(scene, M, eps, kappa=1.0, backbone=None):
     seed, R, t, _, centers = scene
-    backbone = _Peaks(centers) if backbone is None else backbone
-    return pb.pose_bound(backbone, _hull(), seed, R, t, M, eps, kappa=kappa, random_corners=4)
+    backbone = Peaks(centers) if backbone is None else backbone
+    return pb.pose_bound(backbone, unit_hull(), seed, R, t, M, eps, kappa=kappa, random_corners=4)
 
 
 def test_enumeration_proves_what_the_linearised_bound_leaves_open(scene, monkeypatch):
     seed, R, t, factors, centers = scene
-    pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1)), (9, (-1, -1))])
+    pixels = regions_with(centers, [(0, (1, 0)), (5, (0, 1)), (9, (-1, -1))])
     _with_regions(monkeypatch, pixels)
     exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
     eps = 1.5 * exact + 1e-6
@@ -204,7 +96,7 @@ def test_enumeration_proves_what_the_linearised_bound_leaves_open(scene, monkeyp
 
 def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypatch):
     seed, R, t, factors, centers = scene
-    pixels = _regions_with(centers, [(0, (1, 0)), (5, (0, 1))])
+    pixels = regions_with(centers, [(0, (1, 0)), (5, (0, 1))])
     _with_regions(monkeypatch, pixels)
     searches, enumerations = [], []
     search, enumerate_ = pb.search_regions, pb.enumerate_combinations
@@ -215,7 +107,7 @@ def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypat
     exact = _brute_force(seed, [to_image_pixels(np.array(p), factors) for p in pixels], R, t)
     M = np.full((6, 46), 1.0)
     cells = [(1.5 * exact + 1e-6, 1.0), (1.5 * exact + 1e-6, 2.0), (1.2 * exact + 1e-6, 1.0)]
-    hull = pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, M, random_corners=4)
+    hull = pb.HullPoseBound(Peaks(centers), unit_hull(), seed, R, t, M, random_corners=4)
     records = [hull.decide(eps, kappa) for eps, kappa in cells]
     assert len(searches) == 1 and len(enumerations) == 2  # one per distinct Ξ
     assert [r["pb_status"] for r in records] == ["holds"] * 3
@@ -225,26 +117,10 @@ def test_the_cells_of_one_hull_share_its_search_and_enumeration(scene, monkeypat
             assert record[key] == alone[key]
 
 
-def _far_tolerance(scene):
-    """Ξ that holds the seed's rounded pixels' pose but not the pose with keypoint 0 moved
-    by 8 heatmap pixels (on one axis), and the index of that axis."""
-    seed, R, t, factors, centers = scene
-    near = [to_image_pixels(c[None], factors) for c in centers]
-    far = list(near)
-    far[0] = to_image_pixels(centers[0][None] + [8, 0], factors)
-    e_near = rules.enumerated_pose_error(seed, near, R, t)
-    e_far = rules.enumerated_pose_error(seed, far, R, t)
-    axis = int(np.argmax(e_far / e_near))
-    assert e_far[axis] > 2 * e_near[axis]
-    eps = 2 * np.maximum(e_near, e_far)
-    eps[axis] = 0.5 * (e_near[axis] + e_far[axis])
-    return eps, axis
-
-
 def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch):
     centers = scene[-1]
-    eps, axis = _far_tolerance(scene)
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    eps, axis = far_tolerance(scene)
+    _with_regions(monkeypatch, regions_with(centers, [(0, (8, 0))]))
     M = np.zeros((6, 46))  # a linearisation that says nothing moves: bound 0, 'holds'
     record = _decide(scene, M, eps)
     assert record["pb_bound"] == [0.0] * 6
@@ -254,8 +130,8 @@ def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch
     moved = centers.copy()
     moved[0] += [8, 0]
     witnesses = [{0: torch.tensor([1.0], dtype=torch.float64)}]
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]), witnesses)
-    refuted = _decide(scene, M, eps, backbone=_Peaks(centers, moved))
+    _with_regions(monkeypatch, regions_with(centers, [(0, (8, 0))]), witnesses)
+    refuted = _decide(scene, M, eps, backbone=Peaks(centers, moved))
     assert refuted["pb_status"] == "violated" and refuted["pb_rule"] == "witness"
     # Found among the first images (the hull's vertex or a random image past λ = 0.5).
     assert refuted["pb_counterexample"][0] > 0.5 and refuted["pb_exact"] is None
@@ -263,59 +139,42 @@ def test_a_combination_outside_the_tolerance_is_never_a_holds(scene, monkeypatch
 
 def test_an_enumerated_combination_outside_the_tolerance_is_sought_in_the_hull(scene, monkeypatch):
     centers = scene[-1]
-    eps, _ = _far_tolerance(scene)
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    eps, _ = far_tolerance(scene)
+    _with_regions(monkeypatch, regions_with(centers, [(0, (8, 0))]))
     # Only the seed among the first images, and no witness from the search: the combination
     # with keypoint 0 moved (outside Ξ) is left to the targeted search.
     monkeypatch.setattr(pb, "_first_points", lambda hull, seed: [torch.zeros(1).double()])
     moved = centers.copy()
     moved[0] += [8, 0]
     gain = np.where(np.arange(len(centers)) == 0, 1.0, 0.0)  # only keypoint 0 moves (b > 0.5)
-    record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, gain))
+    record = _decide(scene, np.zeros((6, 46)), eps, backbone=Ramp(centers, moved, gain))
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_counterexample"][0] > 0.5
-
-
-def test_single_moves_are_the_possible_pixels_that_alone_leave_the_tolerance(scene):
-    seed, R, t, factors, centers = scene
-    eps, _ = _far_tolerance(scene)
-    pixels = _regions_with(centers, [(0, (8, 0)), (0, (1, 0)), (3, (0, 1))])
-    moves = rules.single_moves(
-        seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, eps
-    )
-    assert [(k, tuple(p)) for k, p in moves] == [(0, tuple(centers[0] + [8, 0]))]
-    wide = np.full(6, 1e6)
-    assert (
-        rules.single_moves(
-            seed, [np.asarray(p, float) for p in pixels], centers, factors, R, t, wide
-        )
-        == []
-    )
 
 
 def test_a_one_keypoint_move_is_sought_when_the_farthest_combination_is_no_image(
     scene, monkeypatch, attacks
 ):
     seed, R, t, factors, centers = scene
-    eps, _ = _far_tolerance(scene)
+    eps, _ = far_tolerance(scene)
     # Keypoint 0 can go 8 px right (outside Ξ) and keypoint 1 one pixel down; the model moves
     # keypoint 0 alone, so the farthest combination (if it moves keypoint 1 too) is no image.
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0)), (1, (0, 1))]))
+    _with_regions(monkeypatch, regions_with(centers, [(0, (8, 0)), (1, (0, 1))]))
     monkeypatch.setattr(pb, "_first_points", lambda hull, seed: [torch.zeros(1).double()])
     moved = centers.copy()
     moved[0] += [8, 0]
     gain = np.where(np.arange(len(centers)) == 0, 1.0, 0.0)
-    record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, gain))
+    record = _decide(scene, np.zeros((6, 46)), eps, backbone=Ramp(centers, moved, gain))
     assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
     assert record["pb_counterexample"][0] > 0.5
     # A model whose keypoint 0 never moves leaves it open: the attack proves nothing.
     never = np.zeros(len(centers))
-    record = _decide(scene, np.zeros((6, 46)), eps, backbone=_Ramp(centers, moved, never))
+    record = _decide(scene, np.zeros((6, 46)), eps, backbone=Ramp(centers, moved, never))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
     # Above the enumeration limit no move is sought (the regions are the bounds' slack).
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)
     sought = len(attacks)
-    record = _decide(scene, np.full((6, 46), 1.0), eps, backbone=_Ramp(centers, moved, gain))
+    record = _decide(scene, np.full((6, 46), 1.0), eps, backbone=Ramp(centers, moved, gain))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "linearised"
     assert len(attacks) == sought
 
@@ -329,7 +188,7 @@ def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
         return pose
 
     _, _, _, _, centers = scene
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (1, 0))]))
+    _with_regions(monkeypatch, regions_with(centers, [(0, (1, 0))]))
     monkeypatch.setattr(rules, "solve_pnp_batch", flag_the_moved_one)
     record = _decide(scene, np.zeros((6, 46)), np.full(6, 1e3))
     assert record["pb_status"] == "unknown" and record["pb_rule"] == "enumeration"
@@ -338,8 +197,8 @@ def test_a_pose_that_pnp_flags_is_outside(scene, monkeypatch):
 
 def test_above_the_limit_the_linearised_bound_decides(scene, monkeypatch):
     centers = scene[-1]
-    eps, _ = _far_tolerance(scene)  # enumerated, the far combination leaves it open
-    _with_regions(monkeypatch, _regions_with(centers, [(0, (8, 0))]))
+    eps, _ = far_tolerance(scene)  # enumerated, the far combination leaves it open
+    _with_regions(monkeypatch, regions_with(centers, [(0, (8, 0))]))
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)
     record = _decide(scene, np.zeros((6, 46)), eps)
     assert record["pb_status"] == "holds" and record["pb_rule"] == "linearised"
@@ -349,7 +208,7 @@ def test_above_the_limit_the_linearised_bound_decides(scene, monkeypatch):
     # The default limit: 5²³ combinations are not enumerated, and are recorded as a float.
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 10**6)
     offsets = [(1, 0), (-1, 0), (0, 1), (0, -1)]
-    _with_regions(monkeypatch, _regions_with(centers, [(k, o) for k in range(23) for o in offsets]))
+    _with_regions(monkeypatch, regions_with(centers, [(k, o) for k in range(23) for o in offsets]))
     huge = _decide(scene, np.zeros((6, 46)), eps)
     assert huge["pb_status"] == "holds" and huge["pb_rule"] == "linearised"
     assert huge["pb_combinations"] == float(5**23) and isinstance(huge["pb_combinations"], float)
@@ -361,7 +220,7 @@ def test_enumeration_equals_a_brute_force_loop(scene, monkeypatch, chunk):
     seed, R, t, factors, centers = scene
     rng = np.random.default_rng(chunk)
     moves = [(k, tuple(rng.integers(-3, 4, 2))) for k in (2, 2, 7, 11, 11, 20)]
-    pixels = _regions_with(centers, moves)  # 3 · 2 · 3 · 2 = 36 combinations (or fewer)
+    pixels = regions_with(centers, moves)  # 3 · 2 · 3 · 2 = 36 combinations (or fewer)
     positions = [to_image_pixels(np.unique(np.array(p), axis=0), factors) for p in pixels]
     brute = _brute_force(seed, positions, R, t)
     sizes = []
@@ -386,116 +245,6 @@ def test_enumeration_equals_a_brute_force_loop(scene, monkeypatch, chunk):
     np.testing.assert_allclose(record["pb_exact"], brute, rtol=1e-5, atol=1e-7)
 
 
-def test_bad_chunks_and_keypoints_are_named(scene):
-    seed, R, t, _, _ = scene
-    with pytest.raises(ValueError, match="^chunk"):
-        rules.enumerated_pose_error(seed, [np.zeros((1, 2))] * 23, R, t, chunk=0)
-    with pytest.raises(ValueError, match=r"^keypoints\[1\]"):
-        rules.enumerated_pose_error(seed, [np.zeros((1, 2)), np.zeros((0, 2))], R, t)
-
-
-def _records():
-    rows = []
-    for image_id, (pb_status, rule, exact) in enumerate(
-        [
-            ("holds", "enumeration", [1.0] * 6),
-            ("unknown", "enumeration", [1.0, 30.0, 1.0, 1.0, 1.0, 1.0]),
-            ("violated", "witness", None),
-            ("holds", "linearised", None),
-            ("unknown", "enumeration", [np.inf] * 6),
-        ]
-    ):
-        rows.append(
-            dict(
-                kind="brightness",
-                level=1.0,
-                image_id=image_id,
-                alpha=1.0,
-                kappa=1.0,
-                status="violated",
-                time=0.1,
-                seed_inside=True,
-                counterexample=[0.0],
-                pb_status=pb_status,
-                pb_rule=rule,
-                pb_time=1.0,
-                pb_bound=[2.0] * 6,
-                pb_exact=exact,
-                pb_nonlinear=[1.0] * 6,
-            )
-        )
-    return pd.DataFrame(rows)
-
-
-def test_tables_count_the_rules_and_label_the_linearised_bound():
-    stored = _records()
-    from_csv = pd.read_csv(io.StringIO(stored.to_csv(index=False)))
-    for records in (stored, from_csv):
-        row = tables.t_global(records).iloc[0]
-        assert (row.pb_holds, row.pb_violated, row.pb_unknown) == (2, 1, 2)
-        assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 3, 1)
-        assert row.pb_enumeration_holds == 1
-        exact = tables.pose_bound_ratios(records, "pb_exact")
-        assert exact.image_id.tolist() == [0, 1, 4]
-        np.testing.assert_allclose(exact.pitch, [0.1, 3.0, np.inf])
-        fig = tables.plot_pose_bounds(records, "T-global")
-        ax = fig.axes[0]
-        labels = ax.get_legend_handles_labels()[1]
-        assert "linearised bound" in labels and "certified" not in ax.get_ylabel()
-        assert any(label.startswith("certified") for label in labels)
-    # Records from before pb_rule: violated by a witness, the rest by the linearised bound.
-    old = stored.drop(columns=["pb_rule", "pb_exact"])
-    row = tables.t_global(old).iloc[0]
-    assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 0, 4)
-    assert tables.pose_bound_ratios(old, "pb_exact").empty
-    labels = tables.plot_pose_bounds(old, "old").axes[0].get_legend_handles_labels()[1]
-    assert "linearised bound" in labels and not any(s.startswith("certified") for s in labels)
-
-
-def test_the_pose_bound_rate_counts_the_seeds_its_pipeline_gets_right():
-    records = _records()  # 5 records, every seed inside Ξ for the target model
-    row = tables.t_global(records).iloc[0]
-    assert row.pb_seeds_inside == 5 and row.pb_verified_rate == pytest.approx(2 / 5)
-    assert row.pb_decided == pytest.approx(3 / 5) and row.decided == 1.0
-    # The argmax pipeline right at 3 seeds, both holds among them; the target model at 2.
-    records["pb_seed_inside"] = [s == "holds" or i == 2 for i, s in enumerate(records.pb_status)]
-    records["seed_inside"] = [True, False, False, True, False]
-    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
-        row = tables.t_global(frame).iloc[0]
-        assert (row.pb_seeds_inside, row.seeds_inside) == (3, 2)
-        assert row.pb_verified_rate == pytest.approx(2 / 3)  # records 0 and 3 of 0, 2, 3
-    # A store mixing records with and without the field: the old ones count the target's.
-    records["pb_seed_inside"] = records["pb_seed_inside"].astype(object)
-    records.loc[[0, 2], "pb_seed_inside"] = None  # target: inside at 0, outside at 2
-    row = tables.t_global(records).iloc[0]
-    assert row.pb_seeds_inside == 2 and row.pb_verified_rate == 1.0  # records 0 and 3
-
-
-def test_the_tables_count_the_searches_the_time_cap_ended():
-    records = _records()
-    records["stopped"] = ["time", "nodes", None, "stop", "time"]
-    records["pb_stopped"] = ["nodes", "time", "witness", None, None]
-    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
-        row = tables.t_global(frame).iloc[0]
-        assert (row.capped, row.pb_capped) == (2, 1)
-    from kpstudy.study.report import campaign_summary
-
-    line = campaign_summary(tables.t_global(records))[-1]
-    assert "2 of the allocation method's and 1 of the pose-bound method's" in line
-    # Records from before the fields: no column, no sentence.
-    old = tables.t_global(records.drop(columns=["stopped", "pb_stopped"]))
-    assert "capped" not in old and np.isnan(old.pb_capped.iloc[0])
-    assert not any("time cap" in s for s in campaign_summary(old))
-
-
-def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
-    records = _records()  # holds, unknown, violated, holds, unknown
-    records["pb_status"] = records["pb_status"].astype(object)
-    records.loc[4, "pb_status"] = None  # an instance the pose-bound method did not run
-    row = tables.t_global(records).iloc[0]
-    assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1
-
-
 def _stride1_cells(scene):
     """The scene's rounded centres (int), their stride-1 pooling, the cell index of
     keypoint k's heatmap pixel ``(u, v)``, and the pixel 8 right of keypoint 0's."""
@@ -511,7 +260,7 @@ def _stride1_cells(scene):
 
 def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tolerance(scene):
     seed, R, t, factors, _ = scene
-    eps, _ = _far_tolerance(scene)
+    eps, _ = far_tolerance(scene)
     centers, pooling, cell, far = _stride1_cells(scene)
     possible = [np.array([cell(k, *c)]) for k, c in enumerate(centers)]
     possible[0] = np.array(sorted([cell(0, *centers[0]), cell(0, *far)]))
@@ -536,9 +285,9 @@ def test_the_refinement_aims_at_unreached_cells_of_combinations_outside_the_tole
 
 def test_under_the_linearised_rule_the_refinement_aims_at_single_moves_outside(scene, monkeypatch):
     seed, R, t, factors, _ = scene
-    eps, _ = _far_tolerance(scene)
+    eps, _ = far_tolerance(scene)
     centers, pooling, cell, far = _stride1_cells(scene)
-    pose = pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, np.zeros((6, 46)))
+    pose = pb.HullPoseBound(Peaks(centers), unit_hull(), seed, R, t, np.zeros((6, 46)))
     pose._spent = 0.0
     # Keypoint 0 may go 8 pixels right (alone, outside Ξ), keypoint 1 one pixel (inside).
     near = centers[1] + [1, 0]
@@ -585,13 +334,13 @@ def _far_pixel_search(scene, foci, nodes=(1, 1), stopped=(None, None)):
 
 def test_a_linearised_unknown_gets_a_focused_round_that_may_decide_it(scene, monkeypatch):
     seed, R, t, factors, _ = scene
-    eps, _ = _far_tolerance(scene)
+    eps, _ = far_tolerance(scene)
     centers, _, cell, far = _stride1_cells(scene)
     foci = []
     monkeypatch.setattr(pb, "search_regions", _far_pixel_search(scene, foci, nodes=(2, 1)))
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
     M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves it open
-    args = (_Peaks(centers), _hull(), seed, R, t, M, eps)
+    args = (Peaks(centers), unit_hull(), seed, R, t, M, eps)
     alone = pb.pose_bound(*args, random_corners=4)
     assert alone["pb_status"] == "unknown" and alone["pb_rule"] == "linearised"
     assert alone["pb_refined"] == 0 and len(foci) == 1
@@ -619,7 +368,7 @@ def test_a_time_cap_on_any_of_the_searches_a_cell_used_is_in_its_record(
     from that search (also a cell that reuses the hull's shared searches); a cell decided
     by the first search alone reports that one's. The searches are faked: no timing."""
     seed, R, t, factors, _ = scene
-    eps, _ = _far_tolerance(scene)
+    eps, _ = far_tolerance(scene)
     centers, *_ = _stride1_cells(scene)
     foci = []
     search = _far_pixel_search(scene, foci, stopped=(first, refinement))
@@ -627,7 +376,7 @@ def test_a_time_cap_on_any_of_the_searches_a_cell_used_is_in_its_record(
     monkeypatch.setattr(pb, "MAX_COMBINATIONS", 1)  # 2 combinations: the linearised rule
     M = np.full((6, 46), 1e3)  # far off: the linearised bound leaves the tight Ξ open
     loose = np.full(6, 1e9)  # ... and not this one: no focused round
-    args = (_Peaks(centers), _hull(), seed, R, t, M)
+    args = (Peaks(centers), unit_hull(), seed, R, t, M)
     alone = pb.pose_bound(*args, eps, random_corners=4, refine_nodes=4)
     assert [f is None for f in foci] == [True, False] and alone["pb_refined"] == 1
     assert alone["pb_status"] == "holds" and alone["pb_stopped"] == expected
@@ -652,9 +401,131 @@ def test_the_start_depth_grows_with_the_hulls_perturbed_images(scene):
     for n, splits, depth in [(1, 1.5, 3), (3, 1.5, 6), (4, 1.75, 8), (4, 12.0, MAX_START_DEPTH)]:
         hull = ConvexHull(images[: n + 1])
         pose = pb.HullPoseBound(
-            _Peaks(centers), hull, seed, R, t, M, start_depth=1, start_splits=splits
+            Peaks(centers), hull, seed, R, t, M, start_depth=1, start_splits=splits
         )
         assert pose.search["start_depth"] == depth
     for bad in (-0.5, "2", True):
         with pytest.raises(ValueError, match="^start_splits"):
-            pb.HullPoseBound(_Peaks(centers), _hull(), seed, R, t, M, start_splits=bad)
+            pb.HullPoseBound(Peaks(centers), unit_hull(), seed, R, t, M, start_splits=bad)
+
+
+#: Seconds that only cap a stalled pose-bound search: node budgets decide what it finds.
+CAP = 600.0
+
+
+@pytest.mark.slow
+def test_certify_records_the_pose_bound_method(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = seed_image(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    budget = dict(check_samples=0, pose_bound_timeout=CAP, pose_bound_nodes=1)  # the hull
+    huge = certify(backbone, vertices, seed, alpha=1e4, **budget)
+    assert huge["pb_status"] == "holds" and huge["pb_counterexample"] is None
+    assert len(huge["pb_bound"]) == 6 and len(huge["pb_pixels"]) == 23
+    assert min(huge["pb_pixels"]) >= 1 and huge["pb_time"] > 0 and huge["pb_stride"] == 1
+    small = certify(backbone, vertices, seed, alpha=0.05, **budget)
+    if small["pb_stopped"] != "witness":  # a search ran: its regions are the hull's
+        assert small["pb_bound"] == huge["pb_bound"]
+    else:  # the seed or a first image refuted it: no node was bounded
+        assert small["pb_nodes"] == 0 and small["pb_status"] == "violated"
+    assert small["pb_status"] in ("violated", "unknown")
+    if small["pb_status"] == "violated":  # a two-epoch network: the seed's argmax pose is off
+        lam = np.asarray(small["pb_counterexample"])
+        assert np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
+    with pytest.raises(ValueError, match="^pose_bound_stride"):
+        certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_stride=2)
+    # The regions from zonotope bounds, recorded as such.
+    zono = certify(backbone, vertices, seed, alpha=1e4, pose_bound_method="zonotope", **budget)
+    assert zono["pb_method"] == "zonotope" and huge["pb_method"] == "forward"
+    assert len(zono["pb_pixels"]) == 23 and zono["pb_rule"] in ("enumeration", "linearised")
+    # α = 10⁴: every pose PnP gives lies in Ξ, so only a combination whose pose PnP flags
+    # as not valid (an infinite error) keeps it open (the tiny network's regions may
+    # hold one, depending on its training's thread count).
+    if zono["pb_status"] != "holds":
+        assert zono["pb_status"] == "unknown" and zono["pb_exact"] == [np.inf] * 6
+    assert zono["pb_nodes"] == huge["pb_nodes"] == 1
+    with pytest.raises(ValueError, match="^pose_bound_method"):
+        certify(backbone, vertices, seed, pose_bound_timeout=1, pose_bound_method="crown")
+
+
+def test_a_node_budget_gives_the_same_regions_whatever_the_time(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = seed_image(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    budget = dict(check_samples=0, pose_bound_nodes=3, pose_bound_start_depth=2)
+    first = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=CAP, **budget)
+    assert 1 <= first["pb_nodes"] <= 3 and first["pb_stopped"] in ("nodes", None)
+    assert first["pb_refined"] == 0  # no second search unless asked for
+    again = certify(backbone, vertices, seed, alpha=1e4, pose_bound_timeout=300, **budget)
+    for key in ("pb_status", "pb_pixels", "pb_bound", "pb_nodes", "pb_stopped"):
+        assert again[key] == first[key]
+
+
+def test_a_counterexample_among_the_first_images_skips_the_search(study):
+    data, checkpoint = study
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = seed_image(data)
+    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
+    # α = 10⁻³: Ξ is so small that the two-epoch network's seed pose already leaves it.
+    record = certify(backbone, vertices, seed, alpha=1e-3, check_samples=0, pose_bound_timeout=CAP)
+    assert record["pb_status"] == "violated" and record["pb_rule"] == "witness"
+    assert record["pb_nodes"] == 0 and record["pb_stopped"] == "witness"
+    # No regions, so no bound over them, and no nonlinear check: a witness decided.
+    assert record["pb_bound"] is None and record["pb_nonlinear"] is None
+    lam = torch.tensor(record["pb_counterexample"], dtype=torch.float64)
+    # The seed and the vertices come before the random images: the witness is one of them.
+    assert bool(((lam == 0) | (lam == 1)).all()) and lam.sum() <= 1
+    s = backbone.input_size
+    hull = ConvexHull(to_model_input(vertices, size=s))
+    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
+    errors = target_pose_errors(backbone, hull.image(lam[None]), seed, R, t)[0]
+    assert not np.all(errors <= 1e-3 * np.r_[EPS_R, EPS_T])  # its own pose leaves Ξ
+
+
+def _block_hull_pose_bound(trained, **search):
+    """The study's trained model, its first seed's overlapping m = 2 block hull and the
+    :class:`HullPoseBound` on it with ``search``'s settings."""
+    data, checkpoint = trained
+    backbone, _ = load_checkpoint(checkpoint)
+    seed = seed_image(data)
+    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
+    hull = ConvexHull(to_model_input(vertices, size=backbone.input_size))
+    R, t = solve_pnp(seed.points_3d, np.asarray(seed.keypoints, float), seed.K)
+    pose = pb.HullPoseBound(backbone, hull, seed, R, t, np.zeros((6, 46)), timeout=CAP, **search)
+    return backbone, hull, pose
+
+
+def test_a_refined_search_only_removes_pixels_no_image_reaches(study):
+    backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=1, refine_nodes=6)
+    first, _ = search_regions(backbone, hull, pose.centers, 1, pose.search)
+    # Every unreached cell in focus: the second search may split wherever the first left one.
+    focus = [np.setdiff1d(p, sorted(w)) for p, w in zip(first.possible, first.witnesses)]
+    merged, pixels = pose._refined(first, focus, 6)
+    assert 1 < merged.nodes <= first.nodes + 6
+    for before, after in zip(first.possible, merged.possible):
+        assert set(after.tolist()) <= set(before.tolist())
+    lam = torch.cat([hull.sample(256, 0), hull.sample(64, 1, "vertices")]).to(torch.float32)
+    with torch.no_grad():
+        argmax = argmax_keypoints(backbone(hull.image(lam)))  # (B, K, 2) heatmap (u, v)
+    for k, region in enumerate(pixels):
+        kept = {tuple(p) for p in region.astype(int).tolist()}
+        assert {tuple(p) for p in argmax[:, k].long().tolist()} <= kept
+
+
+def test_the_search_takes_its_witnesses_from_the_first_images_without_evaluating_them_again(
+    study,
+):
+    backbone, hull, pose = _block_hull_pose_bound(study, max_nodes=2)
+    alone, _ = search_regions(backbone, hull, pose.centers, 1, pose.search)
+    evaluated = []
+    hook = backbone.register_forward_hook(lambda m, args, out: evaluated.append(len(args[0])))
+    record = pose.decide(np.full(6, 1e6))  # Ξ holds every pose: no early witness
+    hook.remove()
+    shared, _ = pose._made["search"][0]
+    assert record["pb_nodes"] == alone.nodes == shared.nodes
+    assert [p.tolist() for p in shared.possible] == [p.tolist() for p in alone.possible]
+    assert [sorted(w) for w in shared.witnesses] == [sorted(w) for w in alone.witnesses]
+    # The 64 random images once (the search used to draw and evaluate the same 64 again).
+    assert 64 <= sum(evaluated) < 2 * 64

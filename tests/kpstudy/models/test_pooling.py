@@ -59,9 +59,6 @@ def gaussian(center_uv, sigma_uv, heatmap_size) -> np.ndarray:
     return np.outer(gv, gu)
 
 
-# --- one axis ---------------------------------------------------------------------------------
-
-
 @settings(max_examples=300, deadline=None)
 @given(axes())
 def test_pooling_params_properties(axis):
@@ -106,9 +103,6 @@ def test_cell_index_scalar_and_array():
     assert cell_index(np.int32(9), p) == 3
     grid = np.array([[0, 3], [6, 9]], dtype=np.uint8)
     np.testing.assert_array_equal(cell_index(grid, p), [[0, 1], [2, 3]])
-
-
-# --- the pooling op ---------------------------------------------------------------------------
 
 
 @st.composite
@@ -185,9 +179,6 @@ def test_build_cell_pool_axis_order():
     assert pool(torch.zeros(1, 1, 20, 50)).shape == (1, 1, pool.n_v, pool.n_h)
 
 
-# --- the keypoint's class ---------------------------------------------------------------------
-
-
 def _adjacent_cells_full(index: int, params: PoolParams, size: int) -> bool:
     n = num_cells(params, size)
     for j in (index - 1, index + 1):
@@ -232,9 +223,6 @@ def test_peak_outside_tolerance_leaves_target_cell():
     pool, target = build_cell_pool((10, 10), (2, 2), (32, 32))
     y = pool(torch.tensor(gaussian((13, 10), (1.0, 1.0), (32, 32)))[None, None])
     assert int(torch.argmax(y.flatten())) == target + 1
-
-
-# --- bad input --------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(

@@ -1,7 +1,11 @@
-"""Keypoint data, the training loop, checkpoints and evaluation on a tiny rendered dataset."""
+"""kpstudy.models.training on a tiny rendered dataset: targets, loss and PCK, the training
+loop, checkpoints, resuming, fine-tuning stages and the train/evaluate commands; non-finite
+training (issue 29, point 5): ``--lr inf``, a diverging loss and a NaN checkpoint are
+refused with one line, no NaN checkpoint is ever written and the last good one is kept."""
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -11,11 +15,10 @@ import pytest
 import torch
 
 from kpstudy.models import training as train_module
-from kpstudy.models.data import load_keypoint_set
-from kpstudy.models.evaluation import evaluate, inside, pose_errors
-from kpstudy.models.preprocess import resize_to_input, scale_factors, to_input_pixels
+from kpstudy.models.evaluation import evaluate
 from kpstudy.models.training import (
     TrainConfig,
+    TrainingDiverged,
     config_of,
     heatmap_loss,
     heatmap_targets,
@@ -32,34 +35,6 @@ def checkpoint(tiny_dataset, tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
     train(tiny_dataset, path, TINY, progress=False)
     return path
-
-
-def test_keypoint_set_is_preprocessing_f0(tiny_dataset):
-    from data_gen.dataset import read_image
-
-    data = load_keypoint_set(tiny_dataset, "train", 64)
-    assert data.images.shape == (16, 64, 64, 3) and data.images.dtype == np.float32
-    assert data.keypoints.shape == (16, 23, 2) and data.image_size == (160, 100)
-    first = read_image(tiny_dataset / "images" / f"{data.image_ids[0]:06d}.png")
-    np.testing.assert_array_equal(data.images[0], resize_to_input(first, 64))
-    factors = scale_factors((160, 100), 64)
-    np.testing.assert_allclose(data.keypoints, to_input_pixels(data.image_keypoints, factors))
-    np.testing.assert_allclose(data.to_image_pixels(data.keypoints), data.image_keypoints)
-    assert len(load_keypoint_set(tiny_dataset, "test", 64, limit=1)) == 1
-
-
-@pytest.mark.parametrize(
-    "args, error, message",
-    [
-        (("nowhere", "train", 64), FileNotFoundError, "data: no dataset folder"),
-        ((None, "dev", 64), ValueError, "split: expected one of"),
-        ((None, "train", 0), ValueError, "input_size: expected a positive integer"),
-    ],
-)
-def test_keypoint_set_bad_input(tiny_dataset, args, error, message):
-    args = (tiny_dataset if args[0] is None else args[0], *args[1:])
-    with pytest.raises(error, match=message):
-        load_keypoint_set(*args)
 
 
 def test_gaussian_targets_sum_to_one_and_peak_at_the_keypoint():
@@ -189,27 +164,6 @@ def test_a_checkpoint_from_before_precision_reads_as_float32(checkpoint):
     state = torch.load(checkpoint, weights_only=True)
     del state["config"]["precision"]
     assert config_of(state) == TINY
-
-
-def test_ground_truth_keypoints_give_the_ground_truth_pose(tiny_dataset):
-    data = load_keypoint_set(tiny_dataset, "test", 64)
-    errors = pose_errors(data.points_3d, data.image_keypoints, data.K, data.R, data.t)
-    assert errors.shape == (2, 6) and errors.max() < 1e-4
-    assert inside(errors, 0.5).all()
-    assert not inside(np.array([[0, 0, 10.1, 0, 0, 0], [0, 0, 0, 0, 0, 19.9]]), 1.0)[0]
-    clustered = 80 + np.random.default_rng(0).normal(0, 1e-4, data.image_keypoints.shape)
-    assert np.isinf(pose_errors(data.points_3d, clustered, data.K, data.R, data.t)).all()
-
-
-def test_evaluate_reports_both_heads(checkpoint, tiny_dataset):
-    summary, per_image = evaluate(checkpoint, tiny_dataset, "test")
-    assert summary["head"].tolist() == ["argmax", "dsnt"]
-    for column in ("pck@1", "pck@2", "pck@4", "inside_xi@0.5", "inside_xi@1", "inside_xi@2"):
-        assert summary[column].between(0, 1).all()
-    assert (summary["pck@1"] <= summary["pck@2"]).all() and (
-        summary["pck@2"] <= summary["pck@4"]
-    ).all()
-    assert len(per_image) == 4 and {"roll", "tz", "inside_xi@1.5"} <= set(per_image)
 
 
 def _cli(*args):
@@ -346,3 +300,97 @@ def test_the_term_grows_from_its_first_scale(tiny_dataset, tmp_path, monkeypatch
     train(tiny_dataset, tmp_path / "c.pt", config, progress=False)
     expected = [0.1 + 0.4 * (step / 4) ** 2 for step in range(4)]
     assert scales == pytest.approx(expected)
+
+
+SHORT = TrainConfig(epochs=2, batch_size=4, images=8, seed=1)  # 2 steps per epoch
+
+
+@pytest.mark.parametrize("name", ["lr", "sigma", "weight_decay", "dsnt_weight", "noise"])
+def test_config_refuses_infinite_numbers(name):
+    with pytest.raises(ValueError, match=f"^{name}: expected .*finite"):
+        TrainConfig(**{name: math.inf})
+
+
+def test_cli_train_lr_inf_exits_2_with_one_line_and_writes_nothing(tiny_dataset, tmp_path):
+    proc = _cli(
+        "train", "--data", str(tiny_dataset), "--out", str(tmp_path / "c.pt"), "--lr", "inf"
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "lr: expected a positive number (finite)" in proc.stderr
+    assert "Traceback" not in proc.stderr and list(tmp_path.iterdir()) == []
+
+
+def _nan_after(monkeypatch, calls: int):
+    """Make the heatmap loss NaN from its ``calls + 1``-th evaluation on."""
+    real, count = train_module.heatmap_loss, [0]
+
+    def loss(*args, **kwargs):
+        count[0] += 1
+        value = real(*args, **kwargs)
+        return value * math.nan if count[0] > calls else value
+
+    monkeypatch.setattr(train_module, "heatmap_loss", loss)
+
+
+def test_training_stops_at_the_first_nan_loss_and_keeps_the_last_good_checkpoint(
+    tiny_dataset, tmp_path, monkeypatch
+):
+    out = tmp_path / "c.pt"
+    _nan_after(monkeypatch, 3)  # epoch 1 (steps 1–2) and step 1 of epoch 2 are finite
+    with pytest.raises(TrainingDiverged) as caught:
+        train(tiny_dataset, out, SHORT, progress=False)
+    message = str(caught.value)
+    assert message.startswith("lr: training diverged at epoch 2, step 2: the loss is nan")
+    assert "\n" not in message and f"the checkpoint of epoch 1 at {out} is kept" in message
+    state = torch.load(out, weights_only=True)
+    assert state["epoch"] == 1
+    assert all(torch.isfinite(v).all() for v in state["model"].values() if v.is_floating_point())
+
+
+def test_a_nan_first_epoch_writes_no_checkpoint(tiny_dataset, tmp_path, monkeypatch):
+    _nan_after(monkeypatch, 0)
+    with pytest.raises(TrainingDiverged, match="epoch 1, step 1: .* no checkpoint was written"):
+        train(tiny_dataset, tmp_path / "c.pt", SHORT, progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_huge_lr_diverges_with_an_error_not_a_nan_checkpoint(tiny_dataset, tmp_path):
+    config = TrainConfig(**(vars(SHORT) | {"lr": 1e30}))
+    with pytest.raises(TrainingDiverged, match="^lr: training diverged at epoch 1"):
+        train(tiny_dataset, tmp_path / "c.pt", config, progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture
+def nan_checkpoint(tiny_dataset, tmp_path):
+    """A finished checkpoint whose first weight tensor was then set to NaN."""
+    path = tmp_path / "nan.pt"
+    state = train(tiny_dataset, path, TrainConfig(**(vars(SHORT) | {"epochs": 1})), progress=False)
+    first = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][first] = torch.full_like(state["model"][first], math.nan)
+    torch.save(state, path)
+    return path
+
+
+def test_a_nan_checkpoint_is_refused_by_evaluate_and_resume(nan_checkpoint, tiny_dataset):
+    with pytest.raises(ValueError, match="^checkpoint: .* holds non-finite weights"):
+        load_checkpoint(nan_checkpoint)
+    with pytest.raises(ValueError, match="^checkpoint: .* holds non-finite weights"):
+        evaluate(nan_checkpoint, tiny_dataset, "test")
+    config = TrainConfig(**(vars(SHORT) | {"epochs": 1}))
+    with pytest.raises(ValueError, match="^out: .* holds non-finite weights"):
+        train(tiny_dataset, nan_checkpoint, config, progress=False)
+
+
+def test_cli_evaluate_of_a_nan_checkpoint_exits_2(nan_checkpoint, tiny_dataset, tmp_path):
+    proc = _cli(
+        "evaluate",
+        "--checkpoint",
+        str(nan_checkpoint),
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(tmp_path / "eval"),
+    )
+    assert proc.returncode == 2 and "holds non-finite weights" in proc.stderr
+    assert proc.stderr.count("\n") == 1 and not list(tmp_path.glob("eval*"))

@@ -12,6 +12,7 @@ from kpstudy.pose import allocation
 from kpstudy.pose.allocation import Allocation, allocate_tolerances
 
 EPS_R = np.array([10.0, 10.0, 10.0])  # degrees
+
 EPS_T = np.array([4.0, 4.0, 20.0])  # metres
 
 
@@ -60,9 +61,6 @@ def check_valid(a: Allocation, M, eps, kappa, ub) -> None:
     assert np.all(a.dv >= 0) and np.all(a.dv.ravel() <= np.asarray(ub).ravel())
     assert a.delta == int(a.dv.min()) and isinstance(a.delta, int)
     assert a.status == "optimal"
-
-
-# --- feasibility, integrality, maximality -------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -114,9 +112,6 @@ def test_maximal_medium(seed):
         y = x.copy()
         y[j] += 1
         assert y[j] > 20 or not feasible(M, eps, 1.5, y)
-
-
-# --- exactness -----------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("seed", range(40))
@@ -256,9 +251,6 @@ def test_deterministic_and_history_independent():
     assert a.objective == b.objective
 
 
-# --- kappa ---------------------------------------------------------------------------------
-
-
 def test_objective_non_increasing_in_kappa():
     rng = np.random.default_rng(11)
     M = random_M(rng, 8)
@@ -274,9 +266,6 @@ def test_objective_non_increasing_in_kappa():
         for j in range(i + 1):
             assert feasible(M, eps, kappas[j], allocs[i + 1].dv)
     assert allocs[-1].objective < allocs[0].objective
-
-
-# --- bounds --------------------------------------------------------------------------------
 
 
 def test_zero_column_needs_max_dv():
@@ -330,8 +319,6 @@ def test_allocation_is_frozen(k23):
     with pytest.raises(dataclasses.FrozenInstanceError):
         a.delta = 3
 
-
-# --- bad input -----------------------------------------------------------------------------
 
 M_OK = np.vstack([np.full((3, 4), 0.05), np.full((3, 4), 0.1)])
 
@@ -395,9 +382,6 @@ def test_allocate_many_in_processes_equals_one_by_one():
     bad = [*problems[:19], (np.full((6, 46), np.nan), [10.0] * 3, [4.0, 4.0, 20.0])]
     with pytest.raises(ValueError, match="^M"):
         allocation.allocate_many(bad, workers=2, max_dv=64)
-
-
-# --- cells around the exact keypoint (allocate_cells) -------------------------------------
 
 
 def cell_brute_force(M, f, eps, kappa, w1, w2, below_max, above_max, every=False):

@@ -1,3 +1,5 @@
+"""kpstudy.pose.geometry: projection, Euler angles and pose errors, against OpenCV and SciPy."""
+
 import cv2
 import numpy as np
 import pytest

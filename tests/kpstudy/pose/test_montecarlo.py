@@ -1,6 +1,11 @@
+"""kpstudy.pose.montecarlo: probabilistic soundness and completeness of allocated
+tolerances, against OpenCV and direct projection; a pose that PnP flags is never counted
+inside Ξ."""
+
 import numpy as np
 import pytest
 
+from kpstudy.pose import montecarlo
 from kpstudy.pose.allocation import allocate_tolerances
 from kpstudy.pose.geometry import EPS_R, EPS_T, euler_from_matrix, project, wrap_degrees
 from kpstudy.pose.montecarlo import (
@@ -10,9 +15,10 @@ from kpstudy.pose.montecarlo import (
     probabilistic_soundness,
     soundness_completeness_table,
 )
-from kpstudy.pose.pnp import solve_pnp
+from kpstudy.pose.pnp import PnPResult, solve_pnp
 from kpstudy.pose.sensitivity import pose_sensitivity
 from tests.conftest import HEATMAP_SCALE, views
+from tests.helpers.pnp import flagged_pnp
 
 
 @pytest.fixture(scope="module")
@@ -265,3 +271,27 @@ def test_bad_input(P, K, study, change, name):
     for fn in (probabilistic_soundness, probabilistic_completeness):
         with pytest.raises(ValueError, match=f"^{name}:"):
             fn(**kw)
+
+
+def test_montecarlo_never_counts_a_flagged_pose_inside(P, K, monkeypatch):
+    R, t, V = views(2, 23, K, P)
+    dv = np.full(V.shape, 0.5)
+    args = (P, V, K, R, t, dv, EPS_R, EPS_T)
+    monkeypatch.setattr(montecarlo, "solve_pnp_batch", flagged_pnp(True))
+    assert probabilistic_soundness(*args, n_samples=8, seed=0).tolist() == [1.0, 1.0]
+    monkeypatch.setattr(montecarlo, "solve_pnp_batch", flagged_pnp(False))
+    assert probabilistic_soundness(*args, n_samples=8, seed=0).tolist() == [0.0, 0.0]
+
+
+def test_montecarlo_refuses_an_invalid_nominal_pose(P, K, monkeypatch):
+    _, _, V = views(2, 24, K, P)
+    real = montecarlo.solve_pnp
+
+    def flag_second(P_, V_, K_, *a, **kw):
+        pose = real(P_, V_, K_, *a, **kw)
+        bad = np.array_equal(V_, V[1])
+        return PnPResult(*pose, not bad, pose.rms_px, pose.min_depth)
+
+    monkeypatch.setattr(montecarlo, "solve_pnp", flag_second)
+    with pytest.raises(ValueError, match="^V: PnP on the keypoints of image 1 gives no valid"):
+        soundness_completeness_table(P, V, K, kappas=[1.0], alphas=[1.0], n_samples=2, seed=0)

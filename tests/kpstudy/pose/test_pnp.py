@@ -1,10 +1,16 @@
+"""kpstudy.pose.pnp: poses recovered as OpenCV recovers them, one at a time and batched;
+its guards (issue 29, point 4): argument checks, and poses that PnP flags as not valid (a
+point behind the camera, a run-away residual, collinear keypoints)."""
+
+import pickle
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
 from kpstudy.pose.geometry import project, project_batch
-from kpstudy.pose.pnp import _CV_CRITERIA, solve_pnp, solve_pnp_batch
+from kpstudy.pose.pnp import _CV_CRITERIA, PnPResult, solve_pnp, solve_pnp_batch
 from tests.conftest import views
 
 
@@ -116,3 +122,117 @@ def test_bad_init_and_batch_input(P, K):
         solve_pnp_batch(P[:5], V[None], K, (np.eye(3), np.zeros(3)))
     with pytest.raises(ValueError, match="^K:"):
         solve_pnp_batch(P, V[None], -K, (np.eye(3), np.zeros(3)))
+
+
+@pytest.fixture(scope="module")
+def batch(P, K):
+    return views(6, 21, K, P, noise_px=1.0)
+
+
+@pytest.mark.parametrize("chunk", [0, -1, 2.5, True])
+def test_chunk_must_be_a_positive_integer(P, K, batch, chunk):
+    R, t, V = batch
+    with pytest.raises(ValueError, match="^chunk: expected an integer >= 1"):
+        solve_pnp_batch(P, V, K, (R, t), chunk=chunk)
+
+
+def test_max_iter_must_be_a_positive_integer(P, K, batch):
+    R, t, V = batch
+    with pytest.raises(ValueError, match="^max_iter: expected an integer >= 1, got 0"):
+        solve_pnp_batch(P, V, K, (R, t), max_iter=0)
+
+
+@pytest.mark.parametrize("tol", [float("nan"), float("inf"), -1.0, "1e-7"])
+def test_tol_px_must_be_finite_and_non_negative(P, K, batch, tol):
+    R, t, V = batch
+    with pytest.raises(ValueError, match="^tol_px: expected a finite number >= 0"):
+        solve_pnp_batch(P, V, K, (R, t), tol_px=tol)
+
+
+def test_initial_rotations_must_be_rotations(P, K, batch):
+    R, t, V = batch
+    scaled = R.copy()
+    scaled[3] *= 2.0  # det 8
+    with pytest.raises(ValueError, match=r"^init\[0\]: expected rotation matrices .*problem 3"):
+        solve_pnp_batch(P, V, K, (scaled, t))
+    with pytest.raises(ValueError, match=r"^init\[0\]: expected rotation matrices"):
+        solve_pnp_batch(P, V, K, (-R[0], t[0]))  # orthonormal, det −1
+
+
+def test_initial_pose_behind_the_camera_is_refused(P, K, batch):
+    R, t, V = batch
+    with pytest.raises(ValueError, match=r"^init: expected poses with every point in front"):
+        solve_pnp_batch(P, V, K, (R, -t))
+    with pytest.raises(ValueError, match=r"^init: expected a pose with every point in front"):
+        solve_pnp(P, V[0], K, init=(R[0], -t[0]))
+
+
+def test_max_rms_px_must_be_positive(P, K, batch):
+    R, t, V = batch
+    for bad in (0.0, -1.0, float("nan"), "2"):
+        with pytest.raises(ValueError, match="^max_rms_px: expected a number > 0"):
+            solve_pnp_batch(P, V, K, (R, t), max_rms_px=bad)
+        with pytest.raises(ValueError, match="^max_rms_px: expected a number > 0"):
+            solve_pnp(P, V[0], K, max_rms_px=bad)
+
+
+@pytest.mark.parametrize("shape", ["one point", "a line"])
+def test_degenerate_keypoints_are_flagged_not_solved(P, K, batch, shape):
+    """Before: identical keypoints gave t ≈ 10⁸ m as a pose. After: that problem alone is
+    flagged as not valid."""
+    R, t, V = batch
+    V = V.copy()
+    if shape == "one point":
+        V[2] = V[2, 0]  # all 23 keypoints at one pixel
+    else:
+        V[2] = V[2, 0] + np.linspace(0.0, 1.0, 23)[:, None] * np.array([120.0, 45.0])
+    R_hat, t_hat = pose = solve_pnp_batch(P, V, K, (R, t))
+    assert isinstance(pose, PnPResult) and R_hat.shape == (6, 3, 3) and t_hat.shape == (6, 3)
+    assert pose.valid.tolist() == [True, True, False, True, True, True]
+
+
+def test_batch_flags_poses_behind_the_camera_and_run_away_residuals(P, K):
+    """Keypoints of a mirrored object (the views' points behind the camera), solved from the
+    true (front) poses: LM ends either behind the camera or runs off towards t → ∞ with a
+    residual near the keypoints' spread. Every such pose is flagged; good ones are not."""
+    R, t, V = views(40, 3, K, P)
+    mirrored = project_batch(P, R, -t, K)
+    pose = solve_pnp_batch(P, mirrored, K, (R, t))
+    behind = pose.min_depth <= 0
+    run_away = np.abs(pose.t[:, 2]) > 1e4
+    assert behind.any() and run_away.any()
+    assert not pose.valid[behind | run_away].any()
+    depth = np.einsum("bij,nj->bni", pose.R, P)[..., 2] + pose.t[:, None, 2]
+    np.testing.assert_allclose(pose.min_depth, depth.min(1))
+    good = solve_pnp_batch(P, V, K, (R, t))
+    assert good.valid.all() and good.rms_px.max() < 1e-6
+
+
+def test_solve_pnp_flags_a_pose_behind_the_camera(P, K):
+    """Before: solve_pnp returned a pose with points behind the camera as any other."""
+    R, t, _ = views(40, 3, K, P)
+    mirrored = project_batch(P, R, -t, K)
+    poses = [solve_pnp(P, v, K, init=(r, t_)) for v, r, t_ in zip(mirrored, R, t)]
+    behind = [p for p in poses if p.min_depth <= 0]
+    assert behind and not any(p.valid for p in behind)
+    assert all(isinstance(p.valid, bool) for p in poses)
+
+
+def test_max_rms_px_flags_residuals_far_above_the_noise(P, K):
+    R, t, V = views(4, 22, K, P, noise_px=1.0)
+    V = V.copy()
+    V[1, :5] += 40.0  # five keypoints 57 px off
+    pose = solve_pnp_batch(P, V, K, (R, t), max_rms_px=5.0)
+    assert pose.valid.tolist() == [True, False, True, True]
+    single = solve_pnp(P, V[1], K, max_rms_px=5.0)
+    assert not single.valid and single.rms_px > 5.0
+
+
+def test_result_unpacks_pickles_and_keeps_tensors(P, K, batch):
+    R, t, V = batch
+    pose = solve_pnp_batch(P, torch.from_numpy(V), K, (R, t))
+    R_hat, t_hat = pose
+    assert isinstance(pose.valid, torch.Tensor) and pose.valid.dtype == torch.bool
+    assert R_hat is pose.R and t_hat is pose.t and len(pose) == 2
+    again = pickle.loads(pickle.dumps(pose))
+    assert torch.equal(again.R, pose.R) and torch.equal(again.valid, pose.valid)

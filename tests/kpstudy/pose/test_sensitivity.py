@@ -1,3 +1,6 @@
+"""kpstudy.pose.sensitivity: the pose's first-order sensitivity to keypoint motion, against
+finite differences of re-solved PnP."""
+
 import numpy as np
 import pytest
 

@@ -20,9 +20,13 @@ from kpstudy.study.allocation_figures import (
 )
 
 IMAGE_SIZE = (640, 400)
+
 HEATMAP = 64
+
 SCALE = (HEATMAP / IMAGE_SIZE[0], HEATMAP / IMAGE_SIZE[1])
+
 ALPHAS = (0.5, 1.0, 1.5, 2.0)
+
 N_IMAGES = 2
 
 

@@ -1,21 +1,29 @@
-"""kpstudy.certify.allocation_method, kpstudy.certify.hull and kpstudy.study.campaign on a
-rendered tiny dataset and a tiny trained CNN."""
+"""kpstudy.study.campaign on a rendered tiny dataset and a tiny trained CNN: grids,
+settings, studies, resuming, pools; and campaigns a careless or hostile user cannot break
+(issue 29, points 1–3 and the campaign's cases of point 7): a store refuses another
+campaign's settings, workers die with their parent, a seed that cannot be certified is an
+``error`` record, and bad ``--store`` / ``--timeout`` / ``--scheduler`` arguments exit 2
+with one line and nothing written."""
 
+import io
+import json
+import os
 import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
 
-import numpy as np
+import pandas as pd
 import pytest
 import torch
 
-from data_gen.perturb import hull_vertices, make_perturbations
-from kpstudy.certify.allocation_method import SeedImage, build_instance
-from kpstudy.certify.hull import certify
-from kpstudy.certify.pose_bound_attack import argmax_outside
-from kpstudy.models.data import load_keypoint_set
-from kpstudy.models.training import TrainConfig, load_checkpoint, train
-from kpstudy.pose.allocation import allocate_tolerances
-from kpstudy.pose.geometry import EPS_R, EPS_T
-from kpstudy.pose.sensitivity import pose_sensitivity
+from data_gen.perturb import make_perturbations
+from kpstudy.cli import main
+from kpstudy.models.training import TrainConfig, train
+from kpstudy.study import campaign, tables
 from kpstudy.study.campaign import (
     Instance,
     ResultStore,
@@ -26,106 +34,7 @@ from kpstudy.study.campaign import (
     run_study,
     store_path,
 )
-
-
-@pytest.fixture(scope="module")
-def study(tiny_dataset, tmp_path_factory):
-    """A copy of the tiny dataset with block and brightness perturbations, and a CNN."""
-    data = tmp_path_factory.mktemp("study") / "data"
-    shutil.copytree(tiny_dataset, data)
-    for kind in ("blocks", "brightness"):
-        make_perturbations(data, kind, seeds=2, seed=0, input_size=64)
-    checkpoint = data.parent / "cnn.pt"
-    train(data, checkpoint, TrainConfig(epochs=2, batch_size=4, images=8, seed=1), progress=False)
-    return data, checkpoint
-
-
-def _seed(data_dir, index=0):
-    return SeedImage.from_keypoint_set(load_keypoint_set(data_dir, "test", 64), index)
-
-
-def test_cells_covering_the_heatmap_hold_and_are_checked_end_to_end(study):
-    data, checkpoint = study
-    backbone, _ = load_checkpoint(checkpoint)
-    seed = _seed(data)
-    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
-    # α = 1e4: every tolerance reaches the heatmap size: one cell per keypoint, nothing to beat.
-    record = certify(
-        backbone, vertices, seed, alpha=1e4, timeout=600, max_nodes=1000, check_samples=16
-    )
-    assert record["status"] == "holds"
-    lo, hi = np.asarray(record["cells"])  # each keypoint's cell is the whole heatmap
-    assert np.all(lo == 0) and np.all(hi == 63) and np.all(np.asarray(record["dv"]) == 31.5)
-    assert record["first_order"] <= 1.0
-    assert record["group_status"] == ["holds"] * 23
-    assert record["empirical_samples"] == 16
-    assert 0.0 <= record["empirical_inside"] <= 1.0
-    assert len(record["seed_error"]) == 6 and isinstance(record["seed_inside"], bool)
-    lower, upper = record["margin_bracket"]
-    assert upper is None or lower is None or lower <= upper + 1e-6
-
-
-def test_a_violated_instance_carries_a_point_of_the_hull(study):
-    data, checkpoint = study
-    backbone, _ = load_checkpoint(checkpoint)
-    seed = _seed(data)
-    vertices = hull_vertices(data, seed.image_id, "blocks", 2, True)
-    record = certify(
-        backbone, vertices, seed, alpha=0.5, timeout=600, max_nodes=1000, check_samples=4
-    )
-    # A two-epoch network misses most keypoints' cells even on the seed image.
-    assert record["status"] == "violated"
-    lam = np.asarray(record["counterexample"])
-    assert lam.shape == (2,) and np.all(lam >= 0) and lam.sum() <= 1 + 1e-12
-    assert record["empirical_inside"] is None
-    assert "violated" in record["group_status"]
-    assert np.all(np.asarray(record["dv"]) <= 64) and record["delta"] == min(
-        min(r) for r in record["dv"]
-    )
-
-
-def test_the_paper_reading_allocates_per_image_pixel_and_measures_its_price(study):
-    data, checkpoint = study
-    backbone, _ = load_checkpoint(checkpoint)
-    seed = _seed(data)
-    vertices = hull_vertices(data, seed.image_id, "brightness", level=2.0)
-    heatmap = build_instance(backbone, vertices, seed, alpha=1.5)
-    paper = build_instance(backbone, vertices, seed, alpha=1.5, tolerance_units="paper")
-    P, V, K = seed.points_3d, np.asarray(seed.keypoints, float), seed.K
-    R, t = heatmap.R, heatmap.t
-    M = pose_sensitivity(P, V, K, R, t, scale=None)
-    expected = allocate_tolerances(M, 1.5 * EPS_R, 1.5 * EPS_T, max_dv=64).dv
-    assert np.array_equal(paper.allocation.dv, expected)
-    lo, hi = paper.cells  # the paper's cells: ±δv around the rounded keypoints
-    assert np.array_equal(hi - paper.centers, expected) and np.array_equal(
-        paper.centers - lo, expected
-    )
-    assert paper.tolerance_units == "paper" and heatmap.tolerance_units == "heatmap"
-    # Per image pixel the sensitivity is smaller (a 640×400 render on a 64×64 heatmap):
-    # the paper's reading allocates wider cells, beyond the first-order bound; the
-    # pose-bound's M stays per heatmap pixel.
-    assert heatmap.feasible and heatmap.first_order <= 1.0 < paper.first_order
-    assert np.sum(paper.cells[1] - paper.cells[0]) > np.sum(heatmap.cells[1] - heatmap.cells[0])
-    assert np.array_equal(paper.M, heatmap.M)
-
-    record = certify(
-        backbone,
-        vertices,
-        seed,
-        alpha=1e4,
-        timeout=600,
-        max_nodes=1000,
-        check_samples=8,
-        tolerance_units="paper",
-    )
-    assert record["status"] == "holds" and record["tolerance_units"] == "paper"
-    hull = paper.hull
-    images = hull.image(hull.sample(8, 0))
-    xi = 1e4 * np.r_[EPS_R, EPS_T]
-    outside = argmax_outside(backbone, images, seed, R, t, xi)
-    assert record["argmax_outside"] == len(outside) / 8
-    with pytest.raises(ValueError, match="^tolerance_units: expected one of"):
-        build_instance(backbone, vertices, seed, tolerance_units="pixels")
+from tests.conftest import seed_image
 
 
 def test_a_study_runs_every_reading_and_the_pose_bound_once(study, tmp_path):
@@ -188,21 +97,6 @@ def test_a_model_gets_its_own_allocation_budget(study, tmp_path):
             run_study(
                 {"tiny": str(checkpoint)}, data, ["blocks"], tmp_path, allocation=bad, **options
             )
-
-
-def test_certify_bad_input_is_named(study):
-    data, checkpoint = study
-    backbone, _ = load_checkpoint(checkpoint)
-    seed = _seed(data)
-    good = hull_vertices(data, seed.image_id, "brightness", level=1.0)
-    with pytest.raises(ValueError, match="alpha"):
-        certify(backbone, good, seed, alpha=0.0)
-    with pytest.raises(ValueError, match="vertices"):
-        certify(backbone, good[:1], seed)
-    with pytest.raises(ValueError, match="check_samples"):
-        certify(backbone, good, seed, check_samples=-1)
-    with pytest.raises(ValueError, match="backbone"):
-        certify(torch.nn.Identity(), good, seed)
 
 
 def _instances(data):
@@ -311,7 +205,7 @@ def test_dask_and_process_pool_runs_equal_the_local_run(study, tmp_path):
 
 def test_run_hull_gives_each_cell_its_record_and_the_clipped_fraction(study):
     data, checkpoint = study
-    seed = _seed(data)
+    seed = seed_image(data)
     settings = Settings(str(checkpoint), str(data), timeout=600, nodes=2, check_samples=0)
     cells = [Instance("brightness", seed.image_id, a, k, level=2.0) for a, k in [(1, 1), (5, 2)]]
     both = run_hull(cells, settings)
@@ -362,3 +256,461 @@ def test_the_command_line_offers_every_setting_with_its_default():
     options = settings.certify_options()
     assert options["max_nodes"] == settings.nodes and "nodes" not in options
     assert options["pose_bound_nodes"] == 3 and "checkpoint" not in options
+
+
+ROOT = Path(__file__).resolve().parents[3]
+
+BAD_IMAGE = 18  # the tiny dataset's second test image
+
+
+@pytest.fixture(scope="module")
+def two_checkpoints(tiny_dataset, tmp_path_factory):
+    """A copy of the tiny dataset with block perturbations, a CNN and a second checkpoint
+    (the same weights, another epoch count: other bytes)."""
+    data = tmp_path_factory.mktemp("reliability") / "data"
+    shutil.copytree(tiny_dataset, data)
+    make_perturbations(data, "blocks", seeds=2, seed=0, input_size=64)
+    checkpoint = data.parent / "cnn.pt"
+    train(data, checkpoint, TrainConfig(epochs=2, batch_size=4, images=8, seed=1), progress=False)
+    other = data.parent / "other.pt"
+    state = torch.load(checkpoint, weights_only=True)
+    state["epoch"] += 1
+    torch.save(state, other)
+    return data, checkpoint, other
+
+
+def _small_grid(data):
+    return grid(data, "blocks", alphas=[0.5, 1e4], kappas=[1.0], ms=[1], overlapping=[False])
+
+
+def _settings(checkpoint, data, **kw):
+    return Settings(str(checkpoint), str(data), **{"timeout": 10, "check_samples": 0, **kw})
+
+
+def _cli(capsys, *argv):
+    """``python -m kpstudy campaign ARGV`` in this process: (exit status, stderr)."""
+    try:
+        status = main(["campaign", *map(str, argv)])
+    except SystemExit as exc:
+        status = exc.code
+    return status, capsys.readouterr().err
+
+
+def _one_line(err, *words):
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+def test_a_store_made_by_another_checkpoint_or_settings_is_refused(
+    two_checkpoints, tmp_path, capsys
+):
+    data, checkpoint, other = two_checkpoints
+    instances = _small_grid(data)[:1]
+    store = tmp_path / "s.sqlite"
+    first = run_campaign(instances, store, _settings(checkpoint, data), progress=False)
+    assert len(first) == 1
+    before = store.read_bytes()
+
+    with pytest.raises(ValueError, match=r"store: .*another campaign \(its checkpoint differ"):
+        run_campaign(instances, store, _settings(other, data), progress=False)
+    with pytest.raises(ValueError, match=r"store: .*its timeout 10.0 \(here 11.0\) differ"):
+        run_campaign(instances, store, _settings(checkpoint, data, timeout=11), progress=False)
+    # The issue's case: the same command with another checkpoint, method and timeout.
+    out = tmp_path / "out"
+    status, err = _cli(
+        capsys,
+        *("--checkpoint", other, "--data", data, "--kind", "blocks", "--alphas", 0.5),
+        *("--ms", 1, "--seeds", 1, "--method", "ibp", "--timeout", 999),
+        *("--store", store, "--out", out),
+    )
+    assert status == 2
+    _one_line(err, "store:", "checkpoint", "method 'auto' (here 'ibp')")
+    assert store.read_bytes() == before and not list(tmp_path.glob("out*"))
+    # The same campaign still resumes from it, computing nothing.
+    again = []
+    resumed = run_campaign(
+        instances,
+        store,
+        _settings(checkpoint, data),
+        progress=False,
+        on_record=lambda i, r: again.append(i),
+    )
+    assert again == [] and resumed.to_json() == first.to_json()
+
+
+def test_a_store_of_unknown_provenance_with_records_is_refused(two_checkpoints, tmp_path):
+    data, checkpoint, _ = two_checkpoints
+    legacy = tmp_path / "legacy.sqlite"
+    with sqlite3.connect(legacy) as db:  # a store as written before stores kept provenance
+        db.execute("CREATE TABLE records (key TEXT PRIMARY KEY, record TEXT)")
+        db.execute("INSERT INTO records VALUES ('k', '{\"status\": \"holds\"}')")
+    with pytest.raises(ValueError, match="store: .*unknown provenance"):
+        run_campaign(_small_grid(data), legacy, _settings(checkpoint, data), progress=False)
+    assert ResultStore(legacy).keys() == {"k"}  # still readable
+
+
+def _state(pid):
+    """The process state letter of ``pid`` (``None``: gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat[stat.rindex(")") + 2]
+
+
+def _children(pid):
+    """Live child processes of ``pid``: {pid: command line}."""
+    out = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out[int(entry.name)] = command
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc (Linux)")
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_killing_a_campaign_leaves_no_worker_behind(two_checkpoints, tmp_path, signum):
+    data, checkpoint, _ = two_checkpoints
+    command = [
+        *(sys.executable, "-m", "kpstudy", "campaign", "--checkpoint", checkpoint),
+        *("--data", data, "--kind", "blocks", "--alphas", 0.5, 0.7, 1.0, 2.0, 3.0),
+        *("--ms", 1, 2, 3, "--workers", 2, "--store", tmp_path / "s.sqlite"),
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    parent = subprocess.Popen(
+        [str(c) for c in command],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    children = {}
+    try:
+        deadline = time.monotonic() + 120  # two workers importing torch on a busy machine
+        while time.monotonic() < deadline and parent.poll() is None:
+            children = _children(parent.pid)
+            if sum("spawn_main" in c for c in children.values()) == 2:
+                break
+            time.sleep(0.1)
+        assert sum("spawn_main" in c for c in children.values()) == 2, (
+            f"no two workers: {children}; stderr: {parent.stderr.read().decode()[-2000:]}"
+            if parent.poll() is not None
+            else f"no two workers: {children}"
+        )
+        parent.send_signal(signum)
+        parent.wait(30)
+        deadline = time.monotonic() + 120  # only a worker that never exits reaches it
+        while time.monotonic() < deadline and any(_state(p) not in (None, "Z") for p in children):
+            time.sleep(0.1)
+        left = {p: c for p, c in children.items() if _state(p) not in (None, "Z")}
+        assert not left, f"alive after the parent's {signum.name}: {left}"
+        assert "Traceback" not in parent.stderr.read().decode()
+    finally:
+        for pid in [parent.pid, *children]:
+            if _state(pid) not in (None, "Z"):
+                os.kill(pid, signal.SIGKILL)
+        parent.wait(30)
+        parent.stderr.close()
+
+
+@pytest.fixture(scope="module")
+def bad_seed(two_checkpoints):
+    """The study's dataset with keypoint 0 of one seed image outside the image."""
+    data, checkpoint, _ = two_checkpoints
+    bad = data.parent / "bad"
+    shutil.copytree(data, bad)
+    path = bad / "annotations.json"
+    coco = json.loads(path.read_text())
+    annotation = next(a for a in coco["annotations"] if a["image_id"] == BAD_IMAGE)
+    annotation["keypoints"][0:2] = [-40.0, -40.0]
+    path.write_text(json.dumps(coco))
+    return bad, checkpoint
+
+
+def test_a_seed_that_cannot_be_certified_is_stored_as_an_error(bad_seed, tmp_path):
+    data, checkpoint = bad_seed
+    instances = _small_grid(data)
+    assert len(instances) == 4 and {i.image_id for i in instances} == {9, BAD_IMAGE}
+    settings = _settings(checkpoint, data)
+    store = tmp_path / "s.sqlite"
+    frame = run_campaign(instances, store, settings, progress=False)
+
+    assert len(frame) == len(instances) == len(ResultStore(store).keys())
+    bad = frame[frame.image_id == BAD_IMAGE]
+    good = frame[frame.image_id != BAD_IMAGE]
+    assert list(bad.status) == ["error", "error"]
+    assert all(isinstance(e, str) and "ValueError" in e for e in bad.error)
+    assert set(good.status) <= {"holds", "violated", "unknown"}
+    assert good.error.isna().all()
+
+    # A rerun completes without recomputing anything; retry_errors reruns the errors only.
+    again = []
+    rerun = run_campaign(
+        instances, store, settings, progress=False, on_record=lambda i, r: again.append(i)
+    )
+    assert again == [] and list(rerun.status) == list(frame.status)
+    retried = []
+    run_campaign(
+        instances,
+        store,
+        settings,
+        progress=False,
+        retry_errors=True,
+        on_record=lambda i, r: retried.append(i),
+    )
+    assert {i.image_id for i in retried} == {BAD_IMAGE} and len(retried) == 2
+
+    # The tables count errors apart: never decided, never verified, not in the rates.
+    from_csv = pd.read_csv(io.StringIO(frame.to_csv(index=False)))
+    for records in (frame, from_csv):
+        table = tables.summarise(records, ["alpha"])
+        assert list(table.instances) == [2, 2] and list(table.errors) == [1, 1]
+        decided = table.holds + table.violated + table.unknown
+        assert list(decided) == [1, 1]
+        good_inside = good.groupby("alpha")["seed_inside"].sum().to_numpy()
+        assert list(table.seeds_inside) == list(good_inside)
+    only_errors = tables.summarise(frame[frame.status == "error"][["alpha", "status"]], ["alpha"])
+    assert list(only_errors.errors) == [1, 1] and list(only_errors.holds) == [0, 0]
+
+
+def _base(two_checkpoints):
+    data, checkpoint, _ = two_checkpoints
+    return (
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks"),
+        *("--alphas", 1e4, "--ms", 1, "--seeds", 1, "--timeout", 5),
+    )
+
+
+NOTES = "these are my notes, not a database\n" * 10
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (("--store", "{tmp}/a_file/sub/s.sqlite"), ("store:", "not a directory")),
+        (("--store", "{tmp}/notes.sqlite"), ("store:", "SQLite")),
+        (("--timeout", 0, "--store", "{tmp}/fresh/s.sqlite"), ("timeout:",)),
+        (("--nodes", 0, "--store", "{tmp}/fresh/s.sqlite"), ("nodes:",)),
+        (("--pose-bound-stride", 2, "--store", "{tmp}/fresh/s.sqlite"), ("pose_bound_stride:",)),
+        (("--check-samples", -1, "--store", "{tmp}/fresh/s.sqlite"), ("check_samples:",)),
+        (
+            ("--tolerance-units", "pixels", "--store", "{tmp}/fresh/s.sqlite"),
+            ("tolerance_units:", "pixels"),
+        ),
+        (
+            ("--scheduler", "tcp://127.0.0.1:1", "--store", "{tmp}/fresh/s.sqlite"),
+            ("scheduler:", "tcp://127.0.0.1:1"),
+        ),
+    ],
+    ids=[
+        "store_uncreatable",
+        "store_not_sqlite",
+        "timeout_0",
+        "nodes_0",
+        "stride_even",
+        "check_samples_negative",
+        "tolerance_units_unknown",
+        "scheduler_unreachable",
+    ],
+)
+def test_campaign_argument_errors_are_one_line_and_write_nothing(
+    two_checkpoints, tmp_path, capsys, argv, words
+):
+    (tmp_path / "a_file").write_text("not a folder")
+    (tmp_path / "notes.sqlite").write_text(NOTES)
+    argv = [str(a).format(tmp=tmp_path) for a in argv]
+    status, err = _cli(capsys, *_base(two_checkpoints), *argv)
+    assert status == 2
+    _one_line(err, *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "notes.sqlite"]
+    assert (tmp_path / "a_file").read_text() == "not a folder"
+    assert (tmp_path / "notes.sqlite").read_text() == NOTES
+
+
+def _broken(two_checkpoints, tmp_path, what):
+    """The study's checkpoint and dataset with one input made unusable: (checkpoint, data,
+    the unusable file)."""
+    data, checkpoint, _ = two_checkpoints
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    if what == "checkpoint":
+        bad = inputs / "truncated.pt"
+        whole = checkpoint.read_bytes()
+        bad.write_bytes(whole[: len(whole) // 2])
+        return bad, data, bad
+    copy = inputs / "data"
+    shutil.copytree(data, copy)
+    if what == "annotations":
+        bad = copy / "annotations.json"
+        text = bad.read_text()
+        bad.write_text(text[: len(text) // 2])
+    else:  # the blocks set's seed image of the first seed, which each of its hulls needs
+        meta = json.loads((copy / "perturbations" / "blocks" / "meta.json").read_text())
+        bad = copy / "perturbations" / "blocks" / meta["images"][0]["seed_file"]
+        bad.unlink()
+    return checkpoint, copy, bad
+
+
+@pytest.mark.parametrize(
+    ("what", "name"),
+    [("checkpoint", "checkpoint:"), ("annotations", "data_dir:"), ("perturbed", "data_dir:")],
+)
+def test_an_unusable_input_is_refused_before_the_store_is_made(
+    two_checkpoints, tmp_path, capsys, what, name
+):
+    checkpoint, data, bad = _broken(two_checkpoints, tmp_path, what)
+    run = tmp_path / "run"
+    status, err = _cli(
+        capsys,
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks", "--alphas", 1e4),
+        *("--ms", 1, "--seeds", 1, "--timeout", 5, "--nodes", 2),
+        *("--store", run / "s.sqlite", "--out", run / "records"),
+    )
+    assert status == 2
+    _one_line(err, name, str(bad))
+    assert not run.exists()
+    settings = _settings(checkpoint, data)
+    with pytest.raises(ValueError, match=f"^{name}"):
+        run_campaign(_small_grid(data), run / "s.sqlite", settings, progress=False)
+    assert not run.exists()
+
+
+def test_a_campaign_with_error_instances_exits_non_zero_and_lists_them(bad_seed, tmp_path, capsys):
+    data, checkpoint = bad_seed
+    argv = (
+        *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks", "--alphas", 0.5, 1e4),
+        *("--ms", 1, "--timeout", 10, "--nodes", 2, "--check-samples", 0),
+        *("--store", tmp_path / "s.sqlite"),
+    )
+    for _ in ("run", "resume"):  # a resumed campaign reports the stored errors too
+        status, err = _cli(capsys, *argv)
+        assert status == 1, err
+        assert "Traceback" not in err
+        lines = err.strip().splitlines()
+        listed = [line for line in lines[:-1] if f'"image_id": {BAD_IMAGE}' in line]
+        assert len(listed) == 4 and all("ValueError" in line for line in listed), err
+        assert "4 of 8 instances ended 'error'" in lines[-1] and "--retry-errors" in lines[-1]
+    assert len(ResultStore(tmp_path / "s.sqlite").keys(errors=False)) == 4
+
+
+def test_reproduce_exits_non_zero_when_a_campaign_instance_ended_error(tmp_path, capsys):
+    tables = tmp_path / "results" / "quick" / "tables"
+    tables.mkdir(parents=True)
+    records = pd.DataFrame(
+        {
+            "kind": ["objects", "objects"],
+            "image_id": [9, BAD_IMAGE],
+            "alpha": [1.0, 1.0],
+            "kappa": [1.0, 1.0],
+            "m": [2, 2],
+            "overlapping": [False, False],
+            "model": ["cnn", "cnn"],
+            "tolerance_units": ["heatmap", "heatmap"],
+            "status": ["holds", "error"],
+            "error": [None, "ValueError: keypoint 0 outside the image"],
+        }
+    )
+    records.to_csv(tables / "t_local_records.csv", index=False)
+    try:
+        status = main(["reproduce", "--out", str(tmp_path / "results"), "--stages", "report"])
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    assert status == 1, captured.err
+    assert "Traceback" not in captured.err
+    assert f"image {BAD_IMAGE}" in captured.out and "keypoint 0 outside" in captured.out
+    last = captured.err.strip().splitlines()[-1]
+    assert "1 of 2 campaign instances ended 'error'" in last and "t_local_records.csv" in last
+    assert (tmp_path / "results" / "quick" / "REPORT.md").is_file()  # the report is written
+
+
+HOLDER = """
+import sys, threading
+from pathlib import Path
+from kpstudy.study import campaign
+from kpstudy.study.campaign import Settings, grid, run_campaign
+
+data, checkpoint, store, marker, code = sys.argv[1:]
+# The test's code fingerprint: an edit to the tree while the tests run changes nothing here.
+campaign.source_fingerprint = lambda: code
+instances = grid(data, "blocks", alphas=[0.5, 1e4], kappas=[1.0], ms=[1], overlapping=[False])
+settings = Settings(checkpoint, data, timeout=600, check_samples=0, nodes=2)
+seen = []
+
+def hold(instance, record):
+    seen.append(instance)
+    if len(seen) == 2:  # the first hull is stored: hold the store until killed
+        Path(marker).write_text("holding")
+        threading.Event().wait()
+
+run_campaign(instances, store, settings, progress=False, on_record=hold)
+"""
+
+
+def _records(frame):
+    """The records without their timings, as comparable text."""
+    return frame.drop(columns=["time", "total_time"]).to_json(orient="records")
+
+
+def test_one_store_takes_one_live_campaign_and_a_killed_one_resumes_exactly(
+    two_checkpoints, tmp_path, capsys
+):
+    data, checkpoint, _ = two_checkpoints
+    instances = _small_grid(data)  # two hulls of two cells each
+    # A node budget decides; the 600 s cap only stops a hang (a fired cap would differ).
+    settings = _settings(checkpoint, data, nodes=2, timeout=600)
+    straight = run_campaign(instances, tmp_path / "straight.sqlite", settings, progress=False)
+    assert len(straight) == 4
+    store, marker, log = tmp_path / "s.sqlite", tmp_path / "holding", tmp_path / "holder.err"
+    code = campaign.source_fingerprint()
+    with open(log, "wb") as err:
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLDER, *map(str, (data, checkpoint, store, marker, code))],
+            cwd=ROOT,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
+    try:
+        deadline = time.monotonic() + 300  # importing torch on a busy machine
+        while not marker.exists() and holder.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert marker.exists(), log.read_text()[-2000:]
+        assert len(ResultStore(store).keys()) == 2
+
+        # A second campaign on the store, in this process and from the command line.
+        with pytest.raises(ValueError, match=r"^store: .* is in use by a running campaign"):
+            run_campaign(instances, store, settings, progress=False)
+        status, err = _cli(
+            capsys,
+            *("--checkpoint", checkpoint, "--data", data, "--kind", "blocks"),
+            *("--alphas", 0.5, 1e4, "--ms", 1, "--timeout", 600, "--check-samples", 0),
+            *("--nodes", 2, "--store", store),
+        )
+        assert status == 2
+        _one_line(err, "store:", str(store), "in use")
+        assert len(ResultStore(store).keys()) == 2
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(30)
+
+    # The killed campaign's store resumes: the rest is computed, the records are the
+    # uninterrupted run's.
+    computed = []
+    resumed = run_campaign(
+        instances, store, settings, progress=False, on_record=lambda i, r: computed.append(i)
+    )
+    assert len(computed) == 2
+    assert _records(resumed) == _records(straight)
+    assert sorted(p.name for p in tmp_path.glob("s.sqlite*")) == ["s.sqlite"]

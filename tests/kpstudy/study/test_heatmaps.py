@@ -47,9 +47,6 @@ def mixture_logits(n, c=20.0):
     return np.log(dens)
 
 
-# --- symmetric, unimodal maps -------------------------------------------------------------
-
-
 @pytest.mark.parametrize(
     "u0, v0, su, sv", [(32, 24, 3.0, 3.0), (20, 24, 2.0, 3.5), (40, 10, 1.0, 1.5)]
 )
@@ -96,9 +93,6 @@ def test_even_tie_picks_left_median():
     assert r["mean"] == pytest.approx(9.5, abs=1e-12)
 
 
-# --- asymmetric maps --------------------------------------------------------------------
-
-
 def test_truncated_at_border_skews_away_from_it():
     h = np.stack(
         [
@@ -143,9 +137,6 @@ def test_vertical_skew_lands_on_v_axis():
     df = symmetry_indicators(separable_logits(log_pu, lognormal_logits(H))[None])
     assert row(df, "v")["skewness"] > 0.1 and row(df, "v")["mean_minus_median"] > 0
     assert abs(row(df, "u")["skewness"]) < 1e-6
-
-
-# --- cross-checks against scipy ---------------------------------------------------------
 
 
 @pytest.mark.parametrize("n", [2, 7, 64, 256])
@@ -195,9 +186,6 @@ def test_through_symmetry_indicators_matches_scipy():
 def test_point_mass_has_nan_skewness():
     r = marginal_indicators(np.eye(5)[2])
     assert np.isnan(r["skewness"]) and r["mean"] == 2 and r["median"] == 2 and r["q3"] == r["q1"]
-
-
-# --- input handling ---------------------------------------------------------------------
 
 
 def test_normalised_equals_log_probabilities():
@@ -262,9 +250,6 @@ def test_frame_layout_ids_and_inputs():
 def test_errors_name_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
         symmetry_indicators(**kwargs)
-
-
-# --- figure -----------------------------------------------------------------------------
 
 
 def test_plot_indicators():

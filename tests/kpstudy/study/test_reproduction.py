@@ -1,8 +1,14 @@
-"""`python -m kpstudy reproduce` end to end at a tiny scale: data → train → the eight notebooks
-under papermill → REPORT.md; a rerun finds everything current."""
+"""kpstudy.study.reproduction: `python -m kpstudy reproduce` end to end at a tiny scale (data
+→ train → the eight notebooks under papermill → REPORT.md; a rerun finds everything
+current), and the notebooks' kernels: over IPC (no IPKernel eavesdropping warning), their
+own diagnostics in a log file."""
+
+from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,13 +16,7 @@ import pandas as pd
 import pytest
 
 from kpstudy.study.report import SECTIONS
-from kpstudy.study.reproduction import (
-    NOTEBOOKS,
-    PROFILES,
-    compare_results,
-    profile,
-    reproduce,
-)
+from kpstudy.study.reproduction import NOTEBOOKS, PROFILES, compare_results, profile, reproduce
 from kpstudy.study.tables import PAPER_T_PROB
 
 # A tiny variant of the standard profile: its readings, the zonotope under node budgets,
@@ -290,3 +290,60 @@ def test_the_standard_profile_reaches_the_campaigns_and_notebooks_run_alone(tmp_
     assert local["allocation"] == global_["allocation"] == prof.allocation
     with pytest.raises(ValueError, match=r"^notebooks: expected some of \["):
         reproduce(prof, tmp_path, stages=("notebooks",), notebooks=["09_nothing"])
+
+
+def test_a_notebook_kernels_own_stderr_goes_to_its_log_file(tmp_path):
+    """IPKernel's log (what it prints when Ctrl-C stops a notebook, say) lands in the
+    ``kernel_manager`` log; the cell's own output stays in the executed notebook."""
+    script = f"""
+from pathlib import Path
+import nbformat, papermill
+from kpstudy.study.reproduction import _ipc_kernel, kernel_manager
+nb = nbformat.v4.new_notebook()
+nb.cells = [nbformat.v4.new_code_cell(
+    "get_ipython().kernel.log.error('kernel-side noise 7d1f'); print('cell output 7d1f')"
+)]
+folder = Path(r"{tmp_path}")
+nbformat.write(nb, folder / "in.ipynb")
+papermill.execute_notebook(
+    str(folder / "in.ipynb"), str(folder / "out.ipynb"), kernel_name="python3",
+    progress_bar=False, config=_ipc_kernel(str(folder)),
+    kernel_manager_class=kernel_manager(folder / "kernel.log"),
+)
+"""
+    run = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stderr
+    assert "kernel-side noise 7d1f" in (tmp_path / "kernel.log").read_text()
+    assert "kernel-side noise 7d1f" not in run.stderr + run.stdout
+    assert "cell output 7d1f" in (tmp_path / "out.ipynb").read_text()
+
+
+def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
+    import nbformat
+    import papermill
+
+    from kpstudy.study.reproduction import _ipc_kernel
+
+    notebook = nbformat.v4.new_notebook()
+    notebook.cells = [nbformat.v4.new_code_cell("x = 1"), nbformat.v4.new_code_cell("x * 2")]
+    notebook.cells[0].metadata["tags"] = ["parameters"]
+    notebook.metadata["kernelspec"] = {"name": "python3", "language": "python"}
+    nbformat.write(notebook, tmp_path / "tiny.ipynb")
+    sockets = tmp_path / "sockets"
+    sockets.mkdir()
+    papermill.execute_notebook(
+        str(tmp_path / "tiny.ipynb"),
+        str(tmp_path / "out.ipynb"),
+        parameters={"x": 21},
+        cwd=str(tmp_path),
+        progress_bar=False,
+        kernel_name="python3",
+        config=_ipc_kernel(str(sockets)),
+    )
+    assert "eavesdropping" not in capfd.readouterr().err  # the kernel's own stderr too
+    result = nbformat.read(tmp_path / "out.ipynb", as_version=4).cells[-1].outputs
+    assert result[0]["data"]["text/plain"] == "42"
+    assert not any(sockets.iterdir())  # the kernel's sockets are gone with it
+    assert not list(tmp_path.glob("kernel-*"))

@@ -3,10 +3,9 @@
 import pytest
 
 from kpstudy.study.table_runs import TABLES, run_table
-from tests.test_campaign import study  # noqa: F401  (the module fixture)
 
 
-def test_a_table_runs_its_campaigns_and_writes_its_files(study, tmp_path):  # noqa: F811
+def test_a_table_runs_its_campaigns_and_writes_its_files(study, tmp_path):
     data, checkpoint = study
     options = dict(
         grid_options=dict(alphas=[1.5], kappas=[1.0], ms=[2], overlapping=[True]),

@@ -1,5 +1,6 @@
-"""kpstudy.study.tables: every summary column against counts made by hand on small record frames,
-as stored and as read back from CSV."""
+"""kpstudy.study.tables on campaign records, as stored and as read back from CSV: every
+summary column against counts made by hand on small record frames, and the pose-bound
+method's columns (which rule decided, what a time cap ended)."""
 
 import io
 import math
@@ -283,3 +284,193 @@ def test_pose_bound_ratios_one_row_per_hull(form):
     assert tables.pose_bound_ratios(records, "pb_exact").empty  # none enumerated
     with pytest.raises(ValueError, match="^column"):
         tables.pose_bound_ratios(records, "pb_nonlinear")
+
+
+def _records():
+    rows = []
+    for image_id, (status, pb, lam, nonlinear) in enumerate(
+        [
+            ("violated", "holds", [0.0, 0.0], [1.0] * 6),  # pose bound only, nonlinear inside
+            ("violated", "holds", [0.2, 0.1], [20.0] * 6),  # nonlinear corner leaves Ξ
+            ("holds", "holds", None, [1.0] * 6),
+            ("violated", "unknown", [0.0, 0.0], [50.0] * 6),
+        ]
+    ):
+        rows.append(
+            dict(
+                kind="contrast",
+                level=5e-4,
+                image_id=image_id,
+                alpha=1.0,
+                kappa=1.0,
+                status=status,
+                time=0.1,
+                seed_inside=True,
+                counterexample=lam,
+                dv=[[1, 0]] * 23,
+                pb_status=pb,
+                pb_time=2.0,
+                pb_bound=[0.5 * image_id + 1.0] * 6,
+                pb_nonlinear=nonlinear,
+            )
+        )
+    return pd.DataFrame(rows)
+
+
+def test_pose_bound_columns_from_stored_and_csv_records():
+    stored = _records()
+    from_csv = pd.read_csv(io.StringIO(stored.to_csv(index=False)))
+    for records in (stored, from_csv):
+        row = tables.t_global(records).iloc[0]
+        assert (row.holds, row.violated, row.violated_at_seed) == (1, 3, 2)
+        assert row.pb_holds == 3 and row.pb_verified_rate == 0.75
+        assert (row.pb_only, row.allocation_only, row.pb_nonlinear_outside) == (2, 0, 1)
+        ratios = tables.pose_bound_ratios(records)
+        assert len(ratios) == 4
+        np.testing.assert_allclose(ratios.tz, (0.5 * np.arange(4) + 1.0) / 20.0)
+
+
+def test_readings_get_a_row_each_and_a_sentence_naming_the_nearer():
+    heatmap = _records()  # from before the field: the 'heatmap' reading
+    paper = _records().drop(columns=[c for c in _records() if c.startswith("pb_")])
+    paper = paper.assign(
+        tolerance_units="paper", status="holds", counterexample=None, argmax_outside=0.25
+    )
+    table = tables.t_global(pd.concat([heatmap, paper], ignore_index=True))
+    by = table.set_index("tolerance_units")
+    assert list(by.index) == ["heatmap", "paper"]
+    assert by.loc["paper", "holds"] == 4 and by.loc["paper", "argmax_outside"] == 0.25
+    assert np.isnan(by.loc["paper", "pb_holds"]) and by.loc["heatmap", "pb_holds"] == 3
+    assert by.loc["heatmap", "verified_rate"] == 0.25 and by.loc["paper", "verified_rate"] == 1.0
+    sentence = tables.reading_comparison(table, "verified_rate", "paper_rate", "Verified rate")
+    # Paper cell (contrast 5e-4, κ = 1, α = 1): 0.570; |0.25 − 0.57| < |1.0 − 0.57|.
+    assert sentence.startswith("Verified rate: under the 'heatmap' reading")
+    assert "0.32" in sentence and "under the 'paper' reading by 0.43" in sentence
+    assert (
+        tables.reading_comparison(tables.t_global(heatmap), "verified_rate", "paper_rate", "x")
+        is None
+    )
+
+
+def test_instance_label_names_records_as_stored_and_read_back_from_csv():
+    records = pd.DataFrame(
+        [
+            dict(model="cnn", tolerance_units="paper", kind="objects", image_id=12,
+                 m=3, overlapping=True, level=None, kappa=1.5, alpha=1.0),
+            dict(model="cnn", tolerance_units="paper", kind="brightness", image_id=7,
+                 m=None, overlapping=None, level=2.0, kappa=1.0, alpha=0.5),
+            dict(model="cnn", tolerance_units="paper", kind="objects", image_id=123456789,
+                 m=2, overlapping=False, level=None, kappa=1.0, alpha=1.5),
+        ]
+    )  # fmt: skip
+    expected = [
+        "cnn paper objects image 12 α=1 κ=1.5 m=3 overlapping",
+        "cnn paper brightness image 7 α=0.5 κ=1 level=2",
+        "cnn paper objects image 123456789 α=1.5 κ=1 m=2 non-overlapping",
+    ]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        assert [tables.instance_label(r) for _, r in frame.iterrows()] == expected
+    assert tables.instance_label({"overlapping": "False", "m": "2"}) == "m=2 non-overlapping"
+    assert tables.instance_label({}) == ""
+
+
+def _pose_bound_records():
+    rows = []
+    for image_id, (pb_status, rule, exact) in enumerate(
+        [
+            ("holds", "enumeration", [1.0] * 6),
+            ("unknown", "enumeration", [1.0, 30.0, 1.0, 1.0, 1.0, 1.0]),
+            ("violated", "witness", None),
+            ("holds", "linearised", None),
+            ("unknown", "enumeration", [np.inf] * 6),
+        ]
+    ):
+        rows.append(
+            dict(
+                kind="brightness",
+                level=1.0,
+                image_id=image_id,
+                alpha=1.0,
+                kappa=1.0,
+                status="violated",
+                time=0.1,
+                seed_inside=True,
+                counterexample=[0.0],
+                pb_status=pb_status,
+                pb_rule=rule,
+                pb_time=1.0,
+                pb_bound=[2.0] * 6,
+                pb_exact=exact,
+                pb_nonlinear=[1.0] * 6,
+            )
+        )
+    return pd.DataFrame(rows)
+
+
+def test_tables_count_the_rules_and_label_the_linearised_bound():
+    stored = _pose_bound_records()
+    from_csv = pd.read_csv(io.StringIO(stored.to_csv(index=False)))
+    for records in (stored, from_csv):
+        row = tables.t_global(records).iloc[0]
+        assert (row.pb_holds, row.pb_violated, row.pb_unknown) == (2, 1, 2)
+        assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 3, 1)
+        assert row.pb_enumeration_holds == 1
+        exact = tables.pose_bound_ratios(records, "pb_exact")
+        assert exact.image_id.tolist() == [0, 1, 4]
+        np.testing.assert_allclose(exact.pitch, [0.1, 3.0, np.inf])
+        fig = tables.plot_pose_bounds(records, "T-global")
+        ax = fig.axes[0]
+        labels = ax.get_legend_handles_labels()[1]
+        assert "linearised bound" in labels and "certified" not in ax.get_ylabel()
+        assert any(label.startswith("certified") for label in labels)
+    # Records from before pb_rule: violated by a witness, the rest by the linearised bound.
+    old = stored.drop(columns=["pb_rule", "pb_exact"])
+    row = tables.t_global(old).iloc[0]
+    assert (row.pb_by_witness, row.pb_by_enumeration, row.pb_by_linearised) == (1, 0, 4)
+    assert tables.pose_bound_ratios(old, "pb_exact").empty
+    labels = tables.plot_pose_bounds(old, "old").axes[0].get_legend_handles_labels()[1]
+    assert "linearised bound" in labels and not any(s.startswith("certified") for s in labels)
+
+
+def test_the_pose_bound_rate_counts_the_seeds_its_pipeline_gets_right():
+    records = _pose_bound_records()  # 5 records, every seed inside Ξ for the target model
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_seeds_inside == 5 and row.pb_verified_rate == pytest.approx(2 / 5)
+    assert row.pb_decided == pytest.approx(3 / 5) and row.decided == 1.0
+    # The argmax pipeline right at 3 seeds, both holds among them; the target model at 2.
+    records["pb_seed_inside"] = [s == "holds" or i == 2 for i, s in enumerate(records.pb_status)]
+    records["seed_inside"] = [True, False, False, True, False]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        row = tables.t_global(frame).iloc[0]
+        assert (row.pb_seeds_inside, row.seeds_inside) == (3, 2)
+        assert row.pb_verified_rate == pytest.approx(2 / 3)  # records 0 and 3 of 0, 2, 3
+    # A store mixing records with and without the field: the old ones count the target's.
+    records["pb_seed_inside"] = records["pb_seed_inside"].astype(object)
+    records.loc[[0, 2], "pb_seed_inside"] = None  # target: inside at 0, outside at 2
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_seeds_inside == 2 and row.pb_verified_rate == 1.0  # records 0 and 3
+
+
+def test_the_tables_count_the_searches_the_time_cap_ended():
+    records = _pose_bound_records()
+    records["stopped"] = ["time", "nodes", None, "stop", "time"]
+    records["pb_stopped"] = ["nodes", "time", "witness", None, None]
+    for frame in (records, pd.read_csv(io.StringIO(records.to_csv(index=False)))):
+        row = tables.t_global(frame).iloc[0]
+        assert (row.capped, row.pb_capped) == (2, 1)
+    from kpstudy.study.report import campaign_summary
+
+    line = campaign_summary(tables.t_global(records))[-1]
+    assert "2 of the allocation method's and 1 of the pose-bound method's" in line
+    # Records from before the fields: no column, no sentence.
+    old = tables.t_global(records.drop(columns=["stopped", "pb_stopped"]))
+    assert "capped" not in old and np.isnan(old.pb_capped.iloc[0])
+    assert not any("time cap" in s for s in campaign_summary(old))
+
+
+def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
+    records = _pose_bound_records()  # holds, unknown, violated, holds, unknown
+    records["pb_status"] = records["pb_status"].astype(object)
+    records.loc[4, "pb_status"] = None  # an instance the pose-bound method did not run
+    row = tables.t_global(records).iloc[0]
+    assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1

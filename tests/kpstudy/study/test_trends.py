@@ -1,23 +1,13 @@
 """kpstudy.study.trends: the 95 % intervals of rates against hand-computed Wilson intervals,
 and the verdicts on trends (shown / not shown / contradicted) on constructed tables."""
 
-import math
-
 import numpy as np
 import pandas as pd
 import pytest
 from scipy import stats
 
 from kpstudy.study import trends
-
-Z95 = 1.959963984540054  # the standard normal's 97.5 % quantile
-
-
-def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """The Wilson score interval written out (not scipy's): centre ± half-width."""
-    centre = (k + z * z / 2) / (n + z * z)
-    half = z / (n + z * z) * math.sqrt(k * (n - k) / n + z * z / 4)
-    return max(0.0, centre - half), min(1.0, centre + half)
+from tests.helpers.records import wilson
 
 
 @pytest.mark.parametrize(
@@ -202,3 +192,57 @@ def test_trend_table_tests_the_paper_and_each_series():
     assert row["c"] == "not shown (p = 1; smoke test, 2 per cell): 0 of 2, 2 unchanged (+0 pp)"
     no_counts = trends.trend_table(cells.drop(columns="seeds_inside"), ["m", "alpha"], ["method"])
     assert no_counts.loc["Verified rate rises with α", "a"].startswith("cannot tell")
+
+
+def test_trend_counts_pairs_along_and_against():
+    cells = pd.DataFrame(
+        {
+            "m": [2, 2, 3, 3, 4, 4],
+            "alpha": [1.0, 1.5] * 3,
+            "rate": [0.2, 0.5, 0.4, 0.1, 0.3, 0.3],
+            "time_all": [10.0, 10.2, 5.0, 1.0, np.nan, 3.0],
+        }
+    )
+    t = trends.trend(cells, "rate", "alpha", ["m"], +1)
+    assert (t.pairs, t.along, t.against, t.flat) == (3, 1, 1, 1)
+    assert t.mean_change == pytest.approx(0.0)
+    assert trends.verdict(t) == "cannot tell"  # no seed counts: nothing to test
+    t = trends.trend(cells, "time_all", "alpha", ["m"], -1, relative=True)
+    assert (t.pairs, t.along, t.against, t.flat) == (2, 1, 0, 1)  # +2 % is unchanged
+    # With 10 seeds a cell: pooled 9 of 30 at α = 1 (2 + 4 + 3) against 9 of 30 at α = 1.5.
+    t = trends.trend(cells.assign(n=10), "rate", "alpha", ["m"], +1, count="n")
+    assert t.difference == 0 and t.p_value == pytest.approx(1.0)
+    assert trends.verdict(t) == "not shown"
+    none = trends.trend(cells[cells.alpha == 1.0], "rate", "alpha", ["m"], +1)
+    assert none.pairs == 0 and trends.verdict(none) == "cannot tell"
+    with pytest.raises(ValueError, match="^sign"):
+        trends.trend(cells, "rate", "alpha", ["m"], 0)
+    with pytest.raises(ValueError, match="^frame: expected a column 'kappa'"):
+        trends.trend(cells, "rate", "kappa", ["m"], 1)
+
+
+def test_level_and_m_trends_pair_within_their_kind():
+    cells = pd.DataFrame(
+        {
+            "kind": ["brightness"] * 2 + ["contrast"] * 3,
+            "level": [1.0, 2.0, 5e-4, 5e-3, 1e-2],
+            "kappa": 1.0,
+            "alpha": 1.0,
+            "time_all": [10.0, 20.0, 30.0, 5.0, 29.0],
+            "time_std": [5.0, 5.0, 10.0, 1.0, 10.0],
+            "timed": 30,
+            "paper_time_mean": [15.0, 40.0, 20.0, 25.0, 60.0],
+            "paper_time_std": [30.0, 60.0, 30.0, 40.0, 90.0],
+        }
+    )
+    table = trends.trend_table(cells, ["kind", "level", "kappa", "alpha"], [])
+    row = table.loc["Larger brightness / contrast changes cost more time"]
+    assert row["the paper's numbers"] == "shown (p < 0.001): 2 of 2 (+32.5 s)"
+    # Pooled: 20 s (10 and 30) at the smallest levels against 24.5 s (20 and 29) at the
+    # largest, 60 instances each; 30 → 29 s alone is within 5 %.
+    assert row["ours"] == "shown (p = 0.029): 1 of 2, 1 unchanged (+4.5 s)"
+    spread = trends.trend_table(
+        cells.assign(time_std=[5.0, 5.0, 30.0, 1.0, 30.0]), ["kind", "level", "kappa", "alpha"], []
+    )
+    assert spread.iloc[0]["ours"] == "not shown (p = 0.29): 1 of 2, 1 unchanged (+4.5 s)"
+    assert list(table.index) == ["Larger brightness / contrast changes cost more time"]

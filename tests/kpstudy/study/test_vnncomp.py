@@ -1,5 +1,5 @@
 """``python -m kpstudy export-benchmark``: the study's instances in the VNN-COMP layout,
-on the tiny study of tests/test_campaign.py."""
+on the tiny study of tests/conftest.py (the ``study`` fixture)."""
 
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ from kpstudy.study.campaign import _context, grid
 from kpstudy.study.vnncomp import instance_name
 from kpstudy.verify.export import read_vnnlib_polytope
 from kpstudy.verify.simplex_map import box_of_lambda
-from tests.test_campaign import study  # noqa: F401 - the module-scoped fixture
 
 BLOCKS = ["--kind", "blocks", "--ms", "1", "--seeds", "1", "--timeout", "30"]
+
 BRIGHTNESS = ["--kind", "brightness", "--levels", "1", "--seeds", "1"]
 
 
@@ -41,7 +41,7 @@ def files(folder):
 
 
 @pytest.fixture(scope="module")
-def bench(study, tmp_path_factory):  # noqa: F811
+def bench(study, tmp_path_factory):
     """The blocks grid (box form, VNN-LIB 1.0, float32) exported once."""
     out = tmp_path_factory.mktemp("bench") / "blocks"
     assert export(study, out, *BLOCKS) == 0
@@ -53,7 +53,7 @@ def rows_of(out):
         return list(csv.reader(f))
 
 
-def test_layout_and_instances_csv(study, bench):  # noqa: F811
+def test_layout_and_instances_csv(study, bench):
     data, checkpoint = study
     names = [
         instance_name(i) for i in grid(data, "blocks", alphas=[1.0], kappas=[1.0], ms=[1], seeds=1)
@@ -79,7 +79,7 @@ def test_layout_and_instances_csv(study, bench):  # noqa: F811
         assert f"onnx/{n}.onnx" in (bench / "vnnlib" / f"{n}.vnnlib").read_text()
 
 
-def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
+def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):
     """Each ONNX (onnxruntime, float32; the default compact form) gives each keypoint's
     least margin of the proxy's outputs at the hull's vertices and at Dirichlet samples,
     its input u mapped onto λ by the sorted spacings; the VNN-LIB file holds one disjunct
@@ -118,7 +118,7 @@ def test_onnx_equals_the_torch_proxy_on_hull_points(study, bench):  # noqa: F811
         assert path.stat().st_size < 3000, (spec.n_rows, path.stat().st_size)
 
 
-def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
+def test_build_instance_is_what_certify_verifies(study):
     """certify's record comes from build_instance's proxy, hull and spec."""
     from kpstudy.certify import certify
     from kpstudy.verify import verify
@@ -145,7 +145,7 @@ def test_build_instance_is_what_certify_verifies(study):  # noqa: F811
     assert list(result.group_status) == record["group_status"]
 
 
-def test_rerun_gives_the_same_bytes(study, bench, tmp_path):  # noqa: F811
+def test_rerun_gives_the_same_bytes(study, bench, tmp_path):
     """The same arguments write the same files, byte for byte (the first result moved
     aside, so that the command, --out included, is the same)."""
     first = tmp_path / "first"
@@ -163,7 +163,7 @@ def test_rerun_gives_the_same_bytes(study, bench, tmp_path):  # noqa: F811
         moved.rename(bench)
 
 
-def test_vnnlib_2_simplex_full_form_parses(study, tmp_path):  # noqa: F811
+def test_vnnlib_2_simplex_full_form_parses(study, tmp_path):
     """VNN-LIB 2.0, the simplex input form and the full property form: the file parses,
     the ONNX takes λ and gives the proxy's cells, one output per cell."""
     vnnlib = pytest.importorskip("vnnlib")
@@ -192,7 +192,7 @@ def _refused(capsys, word, call):
     assert len(lines) == 1 and "export-benchmark" in lines[0] and word in lines[0], lines
 
 
-def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # noqa: F811
+def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):
     data, checkpoint = study
     out = tmp_path / "out"
     _refused(
@@ -250,7 +250,7 @@ def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):  # 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "notes.pt"]
 
 
-def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatch):  # noqa: F811
+def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatch):
     """A seed build_instance refuses is listed in README.md; a grid of only such seeds is
     refused, naming ``instances``, with nothing left behind."""
     import kpstudy.certify.allocation_method
@@ -290,7 +290,7 @@ def reference_rows(out):
         return list(csv.DictReader(f))
 
 
-def test_reference_csv_holds_kpstudys_verdicts(study, tmp_path):  # noqa: F811
+def test_reference_csv_holds_kpstudys_verdicts(study, tmp_path):
     """``--reference-nodes``: reference.csv has a row per instance of instances.csv, in its
     order, with the status and node count that :func:`kpstudy.verify.verify` gives the
     instance's proxy, hull and spec under that node budget (and no time budget), the
@@ -323,7 +323,7 @@ def test_reference_csv_holds_kpstudys_verdicts(study, tmp_path):  # noqa: F811
     assert not (tmp_path / "plain" / "reference.csv").exists()
 
 
-def test_the_tolerance_reading_reaches_the_instances(study, tmp_path):  # noqa: F811
+def test_the_tolerance_reading_reaches_the_instances(study, tmp_path):
     """``--tolerance-units paper`` exports the paper reading's cells, larger than the
     heatmap reading's: each VNN-LIB file's header states the proxy's cells per keypoint,
     those of :func:`kpstudy.certify.build_instance` under that reading, and the paper's
@@ -354,7 +354,7 @@ def test_the_tolerance_reading_reaches_the_instances(study, tmp_path):  # noqa: 
     assert all(p <= h for p, h in zip(cells["paper"], cells["heatmap"]))
 
 
-def test_mix_keeps_instances_until_each_verdict_is_represented(study, tmp_path, monkeypatch):  # noqa: F811
+def test_mix_keeps_instances_until_each_verdict_is_represented(study, tmp_path, monkeypatch):
     """``mix=1`` walks the grid in order: it keeps the first instance of each verdict,
     leaves out one whose class is full and stops when every class has one, never building
     the rest; reference.csv and README.md say which and why. (The tiny study's CNN

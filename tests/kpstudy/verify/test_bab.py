@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from kpstudy.verify import ArgmaxSpec, ConvexHull, Parallelotope, verify
-from tests.verify_nets import MixedNet, PoolProxy, hull_vertices
+from tests.helpers.verify_nets import MixedNet, PoolProxy, hull_vertices
 
 #: A node budget that decides every instance that must be decided here (the largest takes
 #: about 300 nodes), so no verdict depends on the machine's speed; the timeout (s) only caps
@@ -237,56 +237,11 @@ def test_a_counterexample_fails_at_the_exact_set_point_in_float64():
     assert result.stats["attack_margin"][0] > 0  # the float64 margins of the points tried
 
 
-def test_the_search_loop_is_breadth_first_within_its_budgets():
-    """The loop shared with reachable_argmax, on intervals of [0, 1] that stay open while
-    wider than 1/4: batches cross levels in queue order (first halves first), a node
-    budget is passed by at most a batch unless exact, and a batch that ``decide`` stops at
-    or that times out stays in the queue unsplit."""
-    from kpstudy.verify.bounds import BoundsTimeout
-    from kpstudy.verify.search import Step, branch_and_bound
+def test_verify_refuses_a_hull_of_another_dtype_than_the_model():
+    from kpstudy.verify import ArgmaxSpec, ConvexHull, verify
+    from tests.helpers.verify_nets import MixedNet, hull_vertices
 
-    seen = []
-
-    def decide(nodes, state, level):
-        seen.append(nodes[:, 0].tolist())
-        return Step(state, nodes[:, 1] - nodes[:, 0] > 0.25)
-
-    def halve(nodes):
-        mid = nodes.mean(1)
-        return torch.cat([torch.stack([nodes[:, 0], mid], 1), torch.stack([mid, nodes[:, 1]], 1)])
-
-    root, state = torch.tensor([[0.0, 1.0]]), torch.ones(1, 1, dtype=torch.bool)
-    done = branch_and_bound(root, state, decide, halve, batch=3, deadline=float("inf"))
-    assert seen == [[0.0], [0.0, 0.5], [0.0, 0.5, 0.25], [0.75]]
-    assert (done.nodes, done.depth, done.stopped, done.left) == (7, 2, None, [])
-    for exact, nodes, left in ((False, 6, 1), (True, 4, 3)):
-        done = branch_and_bound(
-            root,
-            state,
-            decide,
-            halve,
-            batch=3,
-            deadline=float("inf"),
-            max_nodes=4,
-            exact_budget=exact,
-        )
-        assert (done.nodes, done.stopped) == (nodes, "nodes")
-        assert sum(len(n) for n, _, _ in done.left) == left
-
-    def stop_at_level_1(nodes, state, level):
-        return Step(state & False, (nodes[:, 0] > 0.1) | (level == 0), stop=level == 1)
-
-    done = branch_and_bound(root, state, stop_at_level_1, halve, batch=3, deadline=float("inf"))
-    ((nodes, kept, level),) = done.left
-    assert (done.nodes, done.stopped, level, nodes.tolist()) == (3, "stop", 1, [[0.5, 1.0]])
-    assert not kept.any()  # the state decide returned, unsplit
-
-    def time_out_below_the_root(nodes, state, level):
-        if level > 0:
-            raise BoundsTimeout
-        return Step(state & False, torch.tensor([True]))
-
-    done = branch_and_bound(root, state, time_out_below_the_root, halve, batch=3, deadline=1e300)
-    ((nodes, kept, level),) = done.left
-    assert (done.nodes, done.stopped, level, len(nodes)) == (1, "time", 1, 2)
-    assert not kept.any()  # the states the batch came with: its parent's
+    net = MixedNet(0).eval()  # float32
+    hull = ConvexHull(hull_vertices(0, 3, (2, 8, 8), dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"input_set: expected images of the model's dtype"):
+        verify(net, hull, ArgmaxSpec([3, 3], [0, 0]), timeout=5)

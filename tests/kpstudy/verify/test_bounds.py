@@ -9,7 +9,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from torch import nn
 
 from kpstudy.verify import Box, ConvexHull, Parallelotope, output_bounds
-from tests.verify_nets import LocalNet, MixedNet, PatchNet, PoolProxy, hull_vertices, mlp
+from tests.helpers.verify_nets import LocalNet, MixedNet, PatchNet, PoolProxy, hull_vertices, mlp
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 
@@ -356,19 +356,6 @@ def test_bounds_are_exact_on_a_linear_network():
         torch.testing.assert_close(hi, y.max(0).values)
 
 
-def test_batch_norm_is_folded_into_the_convolution_that_feeds_it():
-    from kpstudy.verify.graph import trace
-
-    net = MixedNet(seed=2)
-    x = hull_vertices(2, 3, (2, 8, 8))
-    graph = trace(net, x[:1])
-    names = [n.name for n in graph.nodes]
-    assert "conv1+bn" in names
-    assert not any(type(n.op).__name__ == "BatchNorm" for n in graph.nodes)
-    with torch.no_grad():
-        torch.testing.assert_close(graph.forward(x), net(x), rtol=1e-5, atol=1e-5)
-
-
 @pytest.mark.parametrize("seed", range(3))
 def test_a_patch_decoder_is_fused_into_one_exact_map_no_looser(seed, monkeypatch):
     """Transposed convolutions whose kernels equal their strides (batch norms between)
@@ -397,20 +384,6 @@ def test_a_patch_decoder_is_fused_into_one_exact_map_no_looser(seed, monkeypatch
         lo3, hi3 = B.propagate(apart, region, zonotope=True, max_generators=4)[0].bounds()
     assert (y >= lo - 1e-9).all() and (y <= hi + 1e-9).all()
     assert (hi - lo <= hi3 - lo3 + 1e-9).all() and ((hi - lo) < (hi3 - lo3) - 1e-6).any()
-
-
-def test_a_fusion_that_would_cost_more_is_not_made():
-    from kpstudy.verify.graph import trace
-    from kpstudy.verify.ops import PatchConvTranspose
-
-    net = PatchNet(0, bottleneck=True).double()
-    x = hull_vertices(0, 2, (2, 8, 8), dtype=torch.float64)
-    graph = trace(net, x[:1])
-    kinds = [type(n.op).__name__ for n in graph.nodes]
-    assert kinds.count("ConvTranspose") + kinds.count("PatchConvTranspose") == 2, kinds
-    with torch.no_grad():
-        torch.testing.assert_close(graph.forward(x), net(x), rtol=1e-12, atol=1e-12)
-    assert any(isinstance(n.op, PatchConvTranspose) for n in graph.nodes)  # the cheap pair
 
 
 @pytest.mark.parametrize("offsets", [64, 0])
@@ -442,39 +415,6 @@ def test_an_output_kept_in_blocks_reads_as_the_dense_stack(seed, offsets, monkey
     torch.testing.assert_close(kept.symbols_at(index), dense.symbols_at(index))
     for a, b in zip(kept.bounds(), dense.bounds()):
         torch.testing.assert_close(a, b)
-
-
-@pytest.mark.parametrize("shape", [(2, 40, 7), (1, 33, 65, 64), (3, 20, 8, 8, 65)])
-def test_l1_rows_sums_absolute_rows_whichever_way_it_goes(shape):
-    """Short rows take one reduction, long ones go a few at a time: the same sums, and
-    the same gradient."""
-    from kpstudy.verify.symbols import L1_DIRECT, l1_rows
-
-    x = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
-    assert (x[:1, :1].numel() <= L1_DIRECT) == (shape[2:] == (7,))
-    out = l1_rows(x)
-    torch.testing.assert_close(out, x.abs().sum(1), rtol=1e-12, atol=1e-12)
-    out.sum().backward()
-    torch.testing.assert_close(x.grad, x.detach().sign())
-
-
-def test_unsupported_layer_is_named():
-    net = nn.Sequential(nn.Conv2d(1, 2, 3), nn.Sigmoid()).eval()
-    with pytest.raises(ValueError, match="model: unsupported operation Sigmoid"):
-        output_bounds(net, ConvexHull(torch.randn(2, 1, 5, 5)))
-
-    class Gelu(nn.Module):
-        def forward(self, x):
-            return torch.nn.functional.gelu(x)
-
-    with pytest.raises(ValueError, match="model: unsupported operation gelu"):
-        output_bounds(Gelu(), ConvexHull(torch.randn(2, 1, 5, 5)))
-
-
-def test_training_mode_batch_norm_is_refused():
-    net = nn.Sequential(nn.Conv2d(1, 2, 3), nn.BatchNorm2d(2))
-    with pytest.raises(ValueError, match="BatchNorm2d needs eval mode"):
-        output_bounds(net, ConvexHull(torch.randn(2, 1, 5, 5)))
 
 
 def test_unknown_method_is_refused():

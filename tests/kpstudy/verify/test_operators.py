@@ -15,7 +15,7 @@ from torch import nn
 
 from kpstudy.verify import Box, ConvexHull, Parallelotope, graph, operators, ops, output_bounds
 from kpstudy.verify.graph import trace
-from tests.verify_nets import PoolProxy, hull_vertices
+from tests.helpers.verify_nets import PoolProxy, hull_vertices
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
 

@@ -12,7 +12,7 @@ from torch import nn
 from kpstudy.verify import Box, ConvexHull, Parallelotope, bound_profile, output_bounds
 from kpstudy.verify import bounds as B
 from kpstudy.verify.graph import trace
-from tests.verify_nets import MixedNet, hull_vertices
+from tests.helpers.verify_nets import MixedNet, hull_vertices
 
 
 @pytest.mark.parametrize("n", [1, 3, 5])

@@ -5,7 +5,7 @@ import torch
 from torch import nn
 
 from kpstudy.verify import ConvexHull, Parallelotope, reachable_argmax
-from tests.verify_nets import MixedNet, PatchNet, PoolProxy, hull_vertices
+from tests.helpers.verify_nets import MixedNet, PatchNet, PoolProxy, hull_vertices
 
 #: A node budget (a few seconds of search here; the searches that end take at most ~260
 #: nodes), so the sets do not depend on the machine's speed; the timeout (s) only caps a

@@ -1,0 +1,1 @@
+"""Tests of kpstudy.models."""
