@@ -95,9 +95,9 @@ def check_counterexample(model, hull, spec, x):
 
 @pytest.mark.parametrize("form", ["compact", "full"])
 def test_neuralsat_agrees_with_verify(tmp_path, form):
-    """On 12 tiny keypoint-like proxies (tests/tiny_proxies.py; n = 1…4, box input form)
-    NeuralSAT answers every instance (it loads them all), decides at least 10, each as
-    ``verify`` decides it (both answers among them), every counterexample a real one."""
+    """On 12 tiny keypoint-like proxies (tests/helpers/tiny_proxies.py; n = 1…4, box input
+    form) NeuralSAT answers every instance (it loads them all), decides at least 10, each
+    as ``verify`` decides it (both answers among them), every counterexample a real one."""
     rows = []
     for i in range(12):
         model, hull = make_instance(i)

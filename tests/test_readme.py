@@ -20,7 +20,8 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 def readme_commands(text: str) -> list[list[str]]:
     """The ``.venv/bin/python -m kpstudy|data_gen …`` commands of the README's ``bash``
     blocks, continuation lines joined, as argument lists (``make`` lines, ``reproduce``
-    and ``python -c`` scripts left out: CI and tests/test_reproduce.py run those)."""
+    and ``python -c`` scripts left out: CI and tests/kpstudy/study/test_reproduction.py
+    run those)."""
     commands = []
     for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
         for line in block.replace("\\\n", " ").splitlines():

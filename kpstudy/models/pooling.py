@@ -14,7 +14,7 @@ inside it is a keypoint error within ``dv`` on that axis.
 The proxy compares cell *averages*. Between full cells, an ideal Gaussian peak
 wins exactly while it lies in its cell; next to a partial border cell it
 need not: a 1-pixel border cell can beat the peak's 9-pixel cell, and on logits a partial
-target cell can keep winning after the peak has left it (tests/test_models.py).
+target cell can keep winning after the peak has left it (tests/kpstudy/models/test_proxy.py).
 
 Pixels are integers ``0 .. size - 1`` (pixel centres on integers); ``(u, v)`` = (column, row).
 """

@@ -81,7 +81,7 @@ linear with weights ≥ 0 and maps a window to one of twice its size at twice it
 
     graph.MODULES[nn.Upsample] = lambda m: Upsample2()
 
-``tests/test_verify_operators.py`` runs these examples through every method.
+``tests/kpstudy/verify/test_operators.py`` runs these examples through every method.
 """
 
 from __future__ import annotations
