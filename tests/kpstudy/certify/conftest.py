@@ -1,4 +1,5 @@
-"""Fixtures of the certify tests."""
+"""Fixtures of the certify tests: the pose-bound tests' scene (a seed image of the airliner,
+its pose and its keypoints on the 64 × 64 heatmap)."""
 
 import numpy as np
 import pytest
