@@ -5,24 +5,13 @@ import pytest
 import trimesh
 
 from data_gen.patches import PatchRenderer, paste, patch_light
-from data_gen.render import Light, Renderer
-
-
-@pytest.fixture(scope="module")
-def renderer():
-    r = Renderer(shadow_size=1024)
-    yield r
-    r.release()
-
-
-def _colored(mesh, rgb):
-    mesh.visual.face_colors = (*rgb, 255)
-    return mesh
+from data_gen.render import Light
+from tests.helpers.meshes import colored
 
 
 def test_patch_scale_shadow_and_paste(renderer):
     patches = PatchRenderer(renderer)
-    car = _colored(trimesh.creation.box((4.0, 2.0, 1.5)), (200, 30, 30))
+    car = colored(trimesh.creation.box((4.0, 2.0, 1.5)), (200, 30, 30))
     car.apply_translation((0, 0, 0.75))
     # Camera looking straight down: the patch's light is the scene's, unchanged.
     light = patch_light(

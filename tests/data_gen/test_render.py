@@ -6,31 +6,20 @@ import trimesh
 from matplotlib.path import Path as PolygonPath
 
 from data_gen.camera import intrinsics
-from data_gen.render import Camera, Item, Light, Renderer, look_at
+from data_gen.render import Camera, Item, Light, look_at
 from kpstudy.pose.geometry import project
-
-
-@pytest.fixture(scope="module")
-def renderer():
-    r = Renderer(shadow_size=1024)
-    yield r
-    r.release()
-
-
-def _colored(mesh, rgb):
-    mesh.visual.face_colors = (*rgb, 255)
-    return mesh
+from tests.helpers.meshes import colored
 
 
 def _ground(renderer, side=400.0):
     ground = trimesh.creation.box((side, side, 0.02))
     ground.apply_translation((0, 0, -0.01))
-    return renderer.upload(_colored(ground, (128, 128, 128)))
+    return renderer.upload(colored(ground, (128, 128, 128)))
 
 
 def test_projection_matches_opencv_pixel_convention(renderer):
     """A pixel is drawn iff its centre (integers, docs/design.md §3) lies in the projected quad."""
-    quad = _colored(trimesh.creation.box((9.0, 5.0, 0.01)), (200, 50, 50))
+    quad = colored(trimesh.creation.box((9.0, 5.0, 0.01)), (200, 50, 50))
     quad.apply_translation((1.3, -0.7, 0.0))
     K = intrinsics(96, 64, 40.0)
     R, t = look_at((8.0, -12.0, 30.0), (0.5, 0.2, 0.0))
@@ -78,7 +67,7 @@ def test_lighting_and_shadow_catcher_alpha(renderer):
     light = Light(
         np.array([0.0, 0.0, 1.0]), sun=0.8, ambient=0.3, sun_color=(1, 1, 1), sky_color=(1, 1, 1)
     )
-    block = _colored(trimesh.creation.box((6.0, 6.0, 4.0)), (90, 90, 90))
+    block = colored(trimesh.creation.box((6.0, 6.0, 4.0)), (90, 90, 90))
     block.apply_translation((0, 0, 2.0))
     K = intrinsics(64, 64, 60.0)
     R, t = look_at((0.0, 0.0, 60.0), (0.0, 0.0, 0.0))
@@ -88,7 +77,7 @@ def test_lighting_and_shadow_catcher_alpha(renderer):
     assert frame.color[32, 32, 0] == pytest.approx(
         128 * (0.3 + 0.8), abs=2
     )  # albedo × (ambient + sun)
-    catcher = renderer.upload(_colored(trimesh.creation.box((100.0, 100.0, 0.02)), (0, 0, 0)))
+    catcher = renderer.upload(colored(trimesh.creation.box((100.0, 100.0, 0.02)), (0, 0, 0)))
     frame = renderer.render(
         [Item(catcher, mode="catcher", object_id=5), Item(renderer.upload(block), object_id=1)],
         Camera(K, R, t, 64, 64),
@@ -107,7 +96,7 @@ def test_lighting_and_shadow_catcher_alpha(renderer):
 def test_render_is_deterministic(renderer):
     K = intrinsics(64, 48, 50.0)
     R, t = look_at((10.0, -5.0, 50.0), (0.0, 0.0, 0.0))
-    box = renderer.upload(_colored(trimesh.creation.box((8.0, 3.0, 3.0)), (30, 120, 200)))
+    box = renderer.upload(colored(trimesh.creation.box((8.0, 3.0, 3.0)), (30, 120, 200)))
     items = [Item(_ground(renderer)), Item(box, object_id=1, specular=0.4)]
     a = renderer.render(items, Camera(K, R, t, 64, 48), Light(np.array([0.4, 0.2, 1.0])))
     b = renderer.render(items, Camera(K, R, t, 64, 48), Light(np.array([0.4, 0.2, 1.0])))

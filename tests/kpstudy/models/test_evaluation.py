@@ -4,23 +4,12 @@ pose) and the evaluation of both heads of a trained checkpoint."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from kpstudy.models import evaluation as evaluate_module
 from kpstudy.models.data import load_keypoint_set
 from kpstudy.models.evaluation import evaluate, inside, pose_errors
-from kpstudy.models.training import TrainConfig, train
 from kpstudy.pose.pnp import PnPResult
 from tests.conftest import views
-
-TINY = TrainConfig(epochs=3, batch_size=4, images=8, lr=3e-3, seed=1)
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset, tmp_path_factory):
-    path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
-    train(tiny_dataset, path, TINY, progress=False)
-    return path
 
 
 def test_ground_truth_keypoints_give_the_ground_truth_pose(tiny_dataset):

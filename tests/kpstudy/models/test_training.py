@@ -26,15 +26,7 @@ from kpstudy.models.training import (
     pck,
     train,
 )
-
-TINY = TrainConfig(epochs=3, batch_size=4, images=8, lr=3e-3, seed=1)
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tiny_dataset, tmp_path_factory):
-    path = tmp_path_factory.mktemp("ckpt") / "cnn.pt"
-    train(tiny_dataset, path, TINY, progress=False)
-    return path
+from tests.helpers.training import TINY
 
 
 def test_gaussian_targets_sum_to_one_and_peak_at_the_keypoint():
