@@ -140,7 +140,17 @@ def test_interrupted_run_leaves_no_output_and_resumes(small, tmp_path, monkeypat
 
 
 @pytest.fixture
-def sigint_elsewhere():
+def python_sigint():
+    """Python's own SIGINT handler for the test, the previous one restored after: a shell's
+    background job (CI started with `&`) starts with SIGINT ignored, and then Python
+    installs none."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+@pytest.fixture
+def sigint_elsewhere(python_sigint):
     """Another thread that takes SIGINT (as tqdm's monitor thread or OpenBLAS's do), and
     ``wait()``: returns once a SIGINT has reached this process's C-level handler (its
     byte on the set_wakeup_fd pipe), so that Python holds it pending. Restores the
@@ -200,7 +210,7 @@ def test_ctrl_c_while_held_surfaces_when_the_block_ends(sigint_elsewhere):
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
 
 
-def test_held_region_without_ctrl_c_and_off_the_main_thread():
+def test_held_region_without_ctrl_c_and_off_the_main_thread(python_sigint):
     with dataset_module._sigint_held():
         pass
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
