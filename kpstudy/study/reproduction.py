@@ -689,10 +689,6 @@ def run_notebooks(
 ) -> list[Path]:
     """Execute every study notebook (of ``only``'s names, when given) whose parameters or
     inputs changed."""
-    import tempfile
-
-    import papermill
-
     out = Path(out).resolve()
     models = {k: str(p.resolve()) for k, p in checkpoints(out).items()}
     data_dir = str(out / "data")
@@ -750,20 +746,62 @@ def run_notebooks(
             continue
         stamp.unlink(missing_ok=True)
         print(f"[reproduce] {name}: running", flush=True)
-        with tempfile.TemporaryDirectory(prefix="kpstudy-kernel-") as sockets:
+        execute_notebook(source, target, params, done / f"{name}.kernel.log")
+        write_text_atomic(stamp, json.dumps(signature, indent=1) + "\n")
+        executed.append(target)
+    return executed
+
+
+def execute_notebook(source: Path, target: Path, params: dict, log: Path, cwd=NOTEBOOKS) -> None:
+    """Run the notebook ``source`` with ``params`` into ``target`` under papermill, in a
+    kernel of its own (:func:`kernel_manager`, its stderr to ``log``; :func:`_ipc_kernel`)
+    started in ``cwd``.
+
+    Ctrl-C reaches the kernel too (the terminal signals the whole process group), which
+    then answers the running cell with an error that nothing awaits any more: asyncio
+    would print it, a traceback, when the process ends. That one report is dropped; the
+    ``KeyboardInterrupt`` goes on to the caller."""
+    import tempfile
+
+    import papermill
+
+    with tempfile.TemporaryDirectory(prefix="kpstudy-kernel-") as sockets:
+        try:
             papermill.execute_notebook(
                 str(source),
                 str(target),
                 parameters=params,
-                cwd=str(NOTEBOOKS),
+                cwd=str(cwd),
                 progress_bar=False,
                 kernel_name="python3",
                 config=_ipc_kernel(sockets),
-                kernel_manager_class=kernel_manager(done / f"{name}.kernel.log"),
+                kernel_manager_class=kernel_manager(log),
             )
-        write_text_atomic(stamp, json.dumps(signature, indent=1) + "\n")
-        executed.append(target)
-    return executed
+        except KeyboardInterrupt:
+            _drop_interrupted_cell_reports()
+            raise
+
+
+def _drop_interrupted_cell_reports() -> None:
+    """Make the event loop that papermill runs on (jupyter_core's, this thread's) drop its
+    "Task exception was never retrieved" report of a cell that Ctrl-C stopped; every
+    other report goes to the handler it had."""
+    from jupyter_core.utils import ensure_event_loop
+    from nbclient.exceptions import CellExecutionError
+
+    loop = ensure_event_loop()
+    previous = loop.get_exception_handler()
+
+    def handler(loop, context):
+        error = context.get("exception")
+        if isinstance(error, CellExecutionError) and error.ename == "KeyboardInterrupt":
+            return
+        if previous is None:
+            loop.default_exception_handler(context)
+        else:
+            previous(loop, context)
+
+    loop.set_exception_handler(handler)
 
 
 def kernel_manager(log: Path):

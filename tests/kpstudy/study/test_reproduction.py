@@ -347,3 +347,62 @@ def test_notebook_kernels_run_over_ipc_without_the_tcp_warning(tmp_path, capfd):
     assert result[0]["data"]["text/plain"] == "42"
     assert not any(sockets.iterdir())  # the kernel's sockets are gone with it
     assert not list(tmp_path.glob("kernel-*"))
+
+
+def test_ctrl_c_in_a_notebook_ends_with_one_line_and_no_traceback(tmp_path):
+    """Ctrl-C (SIGINT to the process group, kernel included) while a cell runs: exit 130,
+    ``kpstudy: interrupted`` and nothing else on stderr (not asyncio's report of the cell
+    the interrupted kernel answered)."""
+    import os
+    import signal
+    import time
+
+    import nbformat
+
+    notebook = nbformat.v4.new_notebook()
+    started = tmp_path / "started"
+    # a cell in compiled code sees Ctrl-C only when it returns to Python: a while later
+    cell = f"""import signal, time
+came = []
+signal.signal(signal.SIGINT, lambda *_: came.append(time.monotonic()))
+open(r'{started}', 'w').close()
+while not came or time.monotonic() - came[0] < 2:
+    time.sleep(0.05)
+raise KeyboardInterrupt
+"""
+    notebook.cells = [nbformat.v4.new_code_cell(cell)]
+    nbformat.write(notebook, tmp_path / "in.ipynb")
+    script = f"""
+import sys
+from pathlib import Path
+from kpstudy.cli import _interruptible
+from kpstudy.study.reproduction import execute_notebook
+folder = Path(r"{tmp_path}")
+run = _interruptible(lambda argv: execute_notebook(
+    folder / "in.ipynb", folder / "out.ipynb", {{}}, folder / "kernel.log", cwd=folder
+))
+sys.exit(run([]))
+"""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        # as in a terminal: a shell's background job (CI started with `&`) ignores SIGINT
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    deadline = time.monotonic() + 600  # only a hang reaches it
+    try:
+        while not started.exists():
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.monotonic() < deadline, "the cell never started (a hang)"
+            time.sleep(0.1)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["kpstudy: interrupted"], err
