@@ -106,6 +106,17 @@ def main(argv=None) -> int:
     )
     cmp.add_argument("a", help="a results folder, e.g. results/quick")
     cmp.add_argument("b", help="another, e.g. a second run's")
+    pub = sub.add_parser(
+        "publish",
+        help="copy a run's report, tables and figures into a reference folder stamped with "
+        "the commit and command that made them",
+    )
+    pub.add_argument("run", help="a results folder, e.g. results/standard")
+    pub.add_argument("dest", help="the reference folder, e.g. docs/results/standard (replaced)")
+    pub.add_argument("--commit", required=True, help="git commit of the code that ran")
+    pub.add_argument(
+        "--command", dest="run_command", required=True, help="the command line that ran it"
+    )
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
     tr.add_argument("--out", required=True, help="checkpoint file; resumed when it exists")
@@ -235,6 +246,11 @@ def main(argv=None) -> int:
             for rel, what in found.items():
                 print(f"{rel}: {what}")
             return int(any(what != "same" for what in found.values()))
+        elif args.command == "publish":
+            from kpstudy.study.reference import publish
+
+            dest = publish(args.run, args.dest, commit=args.commit, command=args.run_command)
+            print(f"reference written to {dest}")
         elif args.command == "train":
             _train(args)
         elif args.command == "evaluate":

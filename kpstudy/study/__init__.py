@@ -7,7 +7,8 @@ campaigns, notebooks 06–08), :mod:`~kpstudy.study.tables`,
 :mod:`~kpstudy.study.comparison` and :mod:`~kpstudy.study.trends` (the tables beside the
 paper's, figures, the paper's statements), :mod:`~kpstudy.study.heatmaps` (F-sym),
 :mod:`~kpstudy.study.allocation_figures` (F-alloc, F-kps), :mod:`~kpstudy.study.report`
-(REPORT.md), :mod:`~kpstudy.study.vnncomp` (``python -m kpstudy export-benchmark``: the
+(REPORT.md), :mod:`~kpstudy.study.reference` (``python -m kpstudy publish``: a run kept
+as the reference result), :mod:`~kpstudy.study.vnncomp` (``python -m kpstudy export-benchmark``: the
 instances as a VNN-COMP benchmark) and :mod:`~kpstudy.study.reproduction` (``python -m
 kpstudy reproduce``: profiles and stages; docs/design.md §6).
 
@@ -31,6 +32,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "summarise_indicators",
             "symmetry_indicators",
         ),
+        "reference": ("notebook_seconds", "publish", "stamp_markdown"),
         "report": None,  # its __all__
         "reproduction": (
             "PROFILES",
