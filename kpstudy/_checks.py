@@ -76,6 +76,25 @@ def seconds(x, name: str, *, optional: bool = False) -> float | None:
     return float(x)
 
 
+def choice(x, name: str, choices):
+    """``x`` when it is one of ``choices`` (an iterable of str, e.g. a tuple of method
+    names or a dict's keys, named in the message in the order given).
+
+    Examples
+    --------
+    >>> choice("box", "input_form", ("box", "simplex"))
+    'box'
+    >>> choice("cube", "input_form", ("box", "simplex"))
+    Traceback (most recent call last):
+    ...
+    ValueError: input_form: expected one of box, simplex, got 'cube'
+    """
+    choices = tuple(choices)
+    if x not in choices:
+        raise ValueError(f"{name}: expected one of {', '.join(map(str, choices))}, got {x!r}")
+    return x
+
+
 @contextlib.contextmanager
 def named(names: Mapping[str, str], prefix: str = ""):
     """Within the block, a check's ``ValueError`` in the caller's words: ``'key: …'`` is

@@ -42,7 +42,6 @@ def build_backbone(name: str, num_keypoints: int = 23) -> nn.Module:
     >>> build_backbone("cnn").input_size
     64
     """
-    if name not in BACKBONES:
-        raise ValueError(f"name: expected one of {sorted(BACKBONES)}, got {name!r}")
+    _checks.choice(name, "name", sorted(BACKBONES))
     _checks.integer(num_keypoints, "num_keypoints", minimum=1)
     return BACKBONES[name](num_keypoints)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import torch
 
+from kpstudy import _checks
 from kpstudy.verify.bounds import Region, propagate
 from kpstudy.verify.graph import Graph, trace
 
@@ -63,13 +64,12 @@ def photometric_pair(image: np.ndarray, kind: str, rng: np.random.Generator) -> 
     """The two perturbed images ``(2, 3, s, s)`` of a random brightness (``image ± d``,
     ``d`` uniform in [0, :data:`BRIGHTNESS`]) or contrast (``image · (1 ± c)``, ``c`` uniform
     in [0, :data:`CONTRAST`]) hull around ``image (3, s, s)`` in [0, 1], clipped to [0, 1]."""
+    _checks.choice(kind, "kind", PHOTOMETRIC)
     if kind == "brightness":
         d = rng.uniform(0, BRIGHTNESS)
         return np.stack([np.clip(image + d, 0, 1), np.clip(image - d, 0, 1)])
-    if kind == "contrast":
-        c = rng.uniform(0, CONTRAST)
-        return np.stack([np.clip(image * (1 + c), 0, 1), np.clip(image * (1 - c), 0, 1)])
-    raise ValueError(f"kind: expected one of {PHOTOMETRIC}, got {kind!r}")
+    c = rng.uniform(0, CONTRAST)
+    return np.stack([np.clip(image * (1 + c), 0, 1), np.clip(image * (1 - c), 0, 1)])
 
 
 def relu_instability(centre: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
@@ -239,8 +239,7 @@ def hull_bounds(graph: Graph, vertices: torch.Tensor, scale: float = 1.0, method
     """
     if not 0.0 <= scale <= 1.0:
         raise ValueError(f"scale: expected a number in [0, 1], got {scale!r}")
-    if method not in BOUND_METHODS:
-        raise ValueError(f"method: expected one of {BOUND_METHODS}, got {method!r}")
+    _checks.choice(method, "method", BOUND_METHODS)
     origin = vertices[:, :1]
     coeff = torch.cat([origin, (vertices[:, 1:] - origin) * scale], 1)
     out, _ = propagate(graph, Region.affine(coeff, "simplex"), zonotope=method == "zonotope")

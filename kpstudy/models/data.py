@@ -98,8 +98,7 @@ def load_keypoint_set(data_dir, split: str, input_size: int, *, limit=None) -> K
     """
     from data_gen.dataset import load_coco, read_image
 
-    if split not in SPLITS:
-        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+    _checks.choice(split, "split", SPLITS)
     _checks.integer(input_size, "input_size", minimum=1)
     data_dir = Path(data_dir)
     if not data_dir.is_dir():

@@ -12,6 +12,8 @@ import torch
 from kornia.geometry.subpix import spatial_expectation2d, spatial_softmax2d
 from torch import nn
 
+from kpstudy import _checks
+
 
 def _check(heatmaps) -> torch.Tensor:
     if not isinstance(heatmaps, torch.Tensor) or heatmaps.ndim != 4:
@@ -60,8 +62,7 @@ class TargetModel(nn.Module):
 
     def __init__(self, backbone: nn.Module, head: str = "dsnt") -> None:
         super().__init__()
-        if head not in self.HEADS:
-            raise ValueError(f"head: expected one of {sorted(self.HEADS)}, got {head!r}")
+        _checks.choice(head, "head", sorted(self.HEADS))
         self.backbone, self.head = backbone, head
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -145,19 +145,13 @@ class TrainConfig:
     )
 
     def __post_init__(self) -> None:
-        if self.backbone not in BACKBONES:
-            raise ValueError(
-                f"backbone: expected one of {sorted(BACKBONES)}, got {self.backbone!r}"
-            )
+        _checks.choice(self.backbone, "backbone", sorted(BACKBONES))
         for name in ("epochs", "batch_size", "certified_hulls", "certified_ramp"):
             _checks.integer(getattr(self, name), name, minimum=1)
         _checks.integer(self.images, "images", minimum=1, optional=True)
         from kpstudy.models.certified import BOUND_METHODS
 
-        if self.certified_method not in BOUND_METHODS:
-            raise ValueError(
-                f"certified_method: expected one of {BOUND_METHODS}, got {self.certified_method!r}"
-            )
+        _checks.choice(self.certified_method, "certified_method", BOUND_METHODS)
         if not 0 < self.certified_scale <= 1:
             raise ValueError(
                 f"certified_scale: expected a number in (0, 1], got {self.certified_scale!r}"
@@ -172,10 +166,8 @@ class TrainConfig:
                 f"certified_scale_from: expected at most certified_scale={self.certified_scale}, "
                 f"got {self.certified_scale_from!r}"
             )
-        if self.schedule not in SCHEDULES:
-            raise ValueError(f"schedule: expected one of {SCHEDULES}, got {self.schedule!r}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision: expected one of {PRECISIONS}, got {self.precision!r}")
+        _checks.choice(self.schedule, "schedule", SCHEDULES)
+        _checks.choice(self.precision, "precision", PRECISIONS)
         if self.init is not None and not (
             isinstance(self.init, str) and re.fullmatch(r"[0-9a-f]{64}", self.init)
         ):

@@ -41,7 +41,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from kpstudy._checks import float_array, integer, positive
+from kpstudy._checks import choice, float_array, integer, positive
 
 __all__ = [
     "MAX_BOUND",
@@ -463,10 +463,7 @@ def allocation_scale(tolerance_units: str, scale):
     """The resize factors ``(sx, sy)`` (image → heatmap) the sensitivity of the allocation
     is computed with under ``tolerance_units`` (:data:`TOLERANCE_UNITS`): ``scale`` for
     ``'heatmap'``, None (image pixels) for ``'paper'``."""
-    if tolerance_units not in TOLERANCE_UNITS:
-        raise ValueError(
-            f"tolerance_units: expected one of {TOLERANCE_UNITS}, got {tolerance_units!r}"
-        )
+    choice(tolerance_units, "tolerance_units", TOLERANCE_UNITS)
     return scale if tolerance_units == "heatmap" else None
 
 

@@ -275,8 +275,7 @@ def grid(
     """
     from data_gen.perturb import KINDS, load_perturbations
 
-    if kind not in KINDS:
-        raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+    _checks.choice(kind, "kind", KINDS)
     alphas, kappas = _positive_list(alphas, "alphas"), _positive_list(kappas, "kappas")
     rows = load_perturbations(data_dir, kind)["images"]
     ids = sorted({r["image_id"] for r in rows})

@@ -36,6 +36,7 @@ import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+from kpstudy import _checks
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
@@ -336,8 +337,7 @@ PROFILES = {
 
 def profile(name: str, **overrides) -> Profile:
     """The named profile with some fields replaced (e.g. ``images=10``)."""
-    if name not in PROFILES:
-        raise ValueError(f"profile: expected one of {sorted(PROFILES)}, got {name!r}")
+    _checks.choice(name, "profile", sorted(PROFILES))
     known = {f.name for f in fields(Profile)} - {"name"}
     unknown = sorted(set(overrides) - known)
     if unknown:

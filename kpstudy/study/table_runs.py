@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from kpstudy import _checks
 from kpstudy.io import save_figure, write_table, write_text_atomic
 from kpstudy.study import campaign, comparison, tables
 
@@ -100,8 +101,7 @@ def run_table(
     -------
     StudyTable
     """
-    if name not in TABLES:
-        raise ValueError(f"name: expected one of {sorted(TABLES)}, got {name!r}")
+    _checks.choice(name, "name", sorted(TABLES))
     kind, out = TABLES[name], Path(out)
     records = campaign.run_study(
         checkpoints,

@@ -34,6 +34,7 @@ import importlib.metadata
 import math
 import os
 import shutil
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +64,37 @@ _NOTHING_TO_VERIFY = (
 
 class _NothingWritten(Exception):
     """No instance of the grid could be built (the staging folder is removed)."""
+
+
+@dataclass(frozen=True)
+class _Options:
+    """The checked export options of :func:`export_benchmark` (``timeout`` in float
+    seconds), as its README and its staging config record them."""
+
+    timeout: float
+    input_form: str
+    vnnlib_version: str
+    dtype: str
+    property_form: str
+    tolerance_units: str
+    reference_nodes: int | None
+    mix: int | None
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """What an export made of the grid: its ``instances`` and their ``names``, the
+    ``sizes`` (n inputs, cells, outputs, disjuncts) of those written, the ``skipped``
+    ``(name, reason)``, the ``reference`` verdicts, the ``unmixed`` ``(name, status)`` and
+    the ``unexamined`` count."""
+
+    instances: list
+    names: list
+    sizes: dict
+    skipped: list
+    reference: dict
+    unmixed: list
+    unexamined: int
 
 
 def _num(x: float) -> str:
@@ -185,9 +217,9 @@ def export_benchmark(
     """
     from tqdm.auto import tqdm
 
-    from kpstudy import __version__, _checks
+    from kpstudy import _checks
     from kpstudy.certify.allocation_method import build_instance
-    from kpstudy.io import source_fingerprint, staged_directory, write_text_atomic
+    from kpstudy.io import staged_directory, write_text_atomic
     from kpstudy.pose.allocation import TOLERANCE_UNITS
     from kpstudy.study.campaign import Settings, _context, instance_vertices, provenance
     from kpstudy.verify import verify
@@ -203,27 +235,14 @@ def export_benchmark(
         raise FileNotFoundError(f"checkpoint: no file at {checkpoint}")
     if not (data_dir / "annotations.json").is_file():
         raise FileNotFoundError(f"data: no data_gen dataset at {data_dir}")
-    if isinstance(timeout, bool) or not float(timeout) > 0 or not np.isfinite(float(timeout)):
-        raise ValueError(f"timeout: expected seconds > 0, got {timeout!r}")
-    if input_form not in INPUT_FORMS:
-        raise ValueError(
-            f"input_form: expected one of {', '.join(INPUT_FORMS)}, got {input_form!r}"
-        )
-    if vnnlib_version not in VNNLIB_VERSIONS:
-        raise ValueError(
-            f"vnnlib_version: expected one of {', '.join(VNNLIB_VERSIONS)}, got {vnnlib_version!r}"
-        )
-    if dtype not in DTYPES:
-        raise ValueError(f"dtype: expected one of {', '.join(DTYPES)}, got {dtype!r}")
-    if property_form not in PROPERTY_FORMS:
-        raise ValueError(
-            f"property_form: expected one of {', '.join(PROPERTY_FORMS)}, got {property_form!r}"
-        )
-    if tolerance_units not in TOLERANCE_UNITS:
-        raise ValueError(
-            f"tolerance_units: expected one of {', '.join(TOLERANCE_UNITS)}, "
-            f"got {tolerance_units!r}"
-        )
+    timeout = _checks.seconds(timeout, "timeout")
+    if not math.isfinite(timeout):  # written into instances.csv: no cap is not a timeout
+        raise ValueError(f"timeout: expected finite seconds > 0, got {timeout!r}")
+    _checks.choice(input_form, "input_form", INPUT_FORMS)
+    _checks.choice(vnnlib_version, "vnnlib_version", VNNLIB_VERSIONS)
+    _checks.choice(dtype, "dtype", DTYPES)
+    _checks.choice(property_form, "property_form", PROPERTY_FORMS)
+    _checks.choice(tolerance_units, "tolerance_units", TOLERANCE_UNITS)
     _checks.integer(reference_nodes, "reference_nodes", minimum=1, optional=True)
     _checks.integer(mix, "mix", minimum=1, optional=True)
     if mix is not None and reference_nodes is None:
@@ -232,28 +251,27 @@ def export_benchmark(
     if not instances:
         raise ValueError("instances: the grid is empty; nothing to export")
     out = _check_out(out)
+    options = _Options(
+        timeout,
+        input_form,
+        vnnlib_version,
+        dtype,
+        property_form,
+        tolerance_units,
+        reference_nodes,
+        mix,
+    )
     settings = Settings(
         str(checkpoint),
         str(data_dir),
-        timeout=float(timeout),
+        timeout=timeout,
         nodes=reference_nodes,
         tolerance_units=tolerance_units,
     )
     backbone, seed_of = _context(str(checkpoint), str(data_dir))  # refuses a bad checkpoint
     origin = provenance(settings)
     names = [instance_name(i) for i in instances]
-    config = {
-        "provenance": origin,
-        "instances": [i.key for i in instances],
-        "timeout": float(timeout),
-        "input_form": input_form,
-        "vnnlib_version": vnnlib_version,
-        "dtype": dtype,
-        "property_form": property_form,
-        "tolerance_units": tolerance_units,
-        "reference_nodes": reference_nodes,
-        "mix": mix,
-    }
+    config = {"provenance": origin, "instances": [i.key for i in instances], **asdict(options)}
     written, skipped, sizes, reference, unmixed = [], [], {}, {}, []
     kept = dict.fromkeys(VERDICTS, 0)
     unexamined = 0
@@ -357,23 +375,8 @@ def export_benchmark(
                 checkpoint,
                 data_dir,
                 origin,
-                __version__,
-                source_fingerprint(),
-                instances,
-                names,
-                sizes,
-                skipped,
-                float(timeout),
-                input_form,
-                vnnlib_version,
-                dtype,
-                property_form,
-                tolerance_units,
-                reference,
-                reference_nodes,
-                mix,
-                unmixed,
-                unexamined,
+                options,
+                _Outcome(instances, names, sizes, skipped, reference, unmixed, unexamined),
             )
             write_text_atomic(staging / "README.md", readme)
     except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
@@ -390,28 +393,20 @@ def export_benchmark(
 
 
 def _readme(
-    command,
-    checkpoint,
-    data_dir,
-    origin,
-    version,
-    code,
-    instances,
-    names,
-    sizes,
-    skipped,
-    timeout,
-    input_form,
-    vnnlib_version,
-    dtype,
-    property_form,
-    tolerance_units,
-    reference,
-    reference_nodes,
-    mix,
-    unmixed,
-    unexamined,
+    command: str,
+    checkpoint: Path,
+    data_dir: Path,
+    origin: dict,
+    options: _Options,
+    outcome: _Outcome,
 ) -> str:
+    """The benchmark's README.md: how ``command`` made it from ``checkpoint`` and
+    ``data_dir`` (their digests in ``origin``, :func:`kpstudy.study.campaign.provenance`'s)
+    with ``options``, what an instance is, and the table of ``outcome``'s instances."""
+    from kpstudy import __version__ as version
+    from kpstudy.io import source_fingerprint
+
+    code = source_fingerprint()
     versions = ", ".join(f"{p} {importlib.metadata.version(p)}" for p in ("torch", "onnx", "numpy"))
     form = {
         "box": "`u` in the box [0, 1]^n, mapped exactly onto the simplex inside the network "
@@ -419,7 +414,7 @@ def _readme(
         "verifier that takes box inputs runs the exact hull",
         "simplex": "`lam` = λ with λ ≥ 0 and the linear input constraint Σ λ ≤ 1 (only "
         "verifiers that accept linear input constraints read it)",
-    }[input_form]
+    }[options.input_form]
     property_text = {
         "compact": "The network ends in each verified keypoint's worst margin, the least "
         "`y_t − y_j` over its other cells j (t: its target cell; the minimum a ReLU tree, "
@@ -431,7 +426,7 @@ def _readme(
         "kilobytes.",
         "full": "The network's output `y` is the cells of all keypoints, and the violation "
         "is one disjunct `Y_j ≥ Y_t` per other cell j of a keypoint with target t.",
-    }[property_form]
+    }[options.property_form]
     lines = [
         "# kpstudy keypoint-proxy verification benchmark",
         "",
@@ -445,9 +440,9 @@ def _readme(
         f"- checkpoint `{checkpoint.name}`, SHA-256 `{origin['checkpoint']}`",
         f"- dataset `{data_dir.name}`, SHA-256 `{origin['dataset']}` (over its "
         "`annotations.json` and the perturbation sets' `meta.json`)",
-        f"- {len(sizes)} instances, input form `{input_form}`, property form "
-        f"`{property_form}`, ONNX {dtype}, VNN-LIB {vnnlib_version}, timeout "
-        f"{_num(timeout)} s each, tolerance reading `{tolerance_units}`",
+        f"- {len(outcome.sizes)} instances, input form `{options.input_form}`, property form "
+        f"`{options.property_form}`, ONNX {options.dtype}, VNN-LIB {options.vnnlib_version}, "
+        f"timeout {_num(options.timeout)} s each, tolerance reading `{options.tolerance_units}`",
         "",
         "Layout as in the VNN-COMP benchmarks: `onnx/NAME.onnx`, `vnnlib/NAME.vnnlib`, and "
         "`instances.csv` with one row `onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT` per "
@@ -470,7 +465,7 @@ def _readme(
             "heatmap": "read in heatmap pixels around the exact keypoints: sound to first order",
             "paper": "the paper's reading: allocated per image pixel and used as heatmap "
             "pixels, larger cells",
-        }[tolerance_units]
+        }[options.tolerance_units]
         + "), the cells of all keypoints concatenated. Its batch norms are folded into the "
         "convolutions, every value has a static shape (batch 1) and every node input a "
         "name, and the graph passes `onnx.checker`'s full check: ONNX importers such as "
@@ -486,34 +481,35 @@ def _readme(
         "images overlapping the airplane or not) or `lLEVEL` (brightness b, contrast c).",
         "",
     ]
-    if reference_nodes is not None:
-        counts = {v: sum(r[0] == v for r in reference.values()) for v in VERDICTS}
+    if options.reference_nodes is not None:
+        counts = {v: sum(r[0] == v for r in outcome.reference.values()) for v in VERDICTS}
         lines += [
             "## Reference verdicts",
             "",
             "`reference.csv` (`name,status,time,nodes,method,max_nodes`) holds kpstudy's own "
             f"verdict on each instance: `kpstudy.verify.verify`, method `{REFERENCE_METHOD}`, "
-            f"a budget of {reference_nodes} branch-and-bound nodes and no time budget (the "
-            "verdict does not depend on the machine; the seconds are this machine's), on the "
+            f"a budget of {options.reference_nodes} branch-and-bound nodes and no time budget "
+            "(the verdict does not depend on the machine; the seconds are this machine's), on the "
             "float32 torch proxy. `holds` is `unsat`, `violated` is `sat`, `unknown` means "
             "the budget ran out: a hard case. Counts: "
             + ", ".join(f"{counts[v]} {v}" for v in VERDICTS)
             + ".",
             "",
         ]
-    if mix is not None:
+    if options.mix is not None:
         lines += [
-            "Selection (`mix` = " + str(mix) + "): the grid was walked in order and an "
+            "Selection (`mix` = " + str(options.mix) + "): the grid was walked in order and an "
             "instance kept only while its verdict's class (holds, violated, unknown) had "
-            f"fewer than {mix} kept instances; the walk stopped once every class had {mix}. "
+            f"fewer than {options.mix} kept instances; the walk stopped once every class had "
+            f"{options.mix}. "
             + (
-                f"Left out for a full class: {len(unmixed)} (listed below)"
-                if unmixed
+                f"Left out for a full class: {len(outcome.unmixed)} (listed below)"
+                if outcome.unmixed
                 else "None was left out for a full class"
             )
             + (
-                f", and the grid's last {unexamined} were never built."
-                if unexamined
+                f", and the grid's last {outcome.unexamined} were never built."
+                if outcome.unexamined
                 else "; the whole grid was examined."
             )
             + "".join(
@@ -525,11 +521,11 @@ def _readme(
         ]
     header = "| name | kind | image | m | overlapping | level | α | κ | n | cells | outputs |"
     header += " disjuncts |"
-    if reference_nodes is not None:
+    if options.reference_nodes is not None:
         header += " kpstudy | nodes |"
     lines += ["## Instances", "", header, "|---" * header.count(" | ") + "|---|"]
-    for instance, name in zip(instances, names):
-        if name not in sizes:
+    for instance, name in zip(outcome.instances, outcome.names):
+        if name not in outcome.sizes:
             continue
         cells = [
             name,
@@ -540,15 +536,15 @@ def _readme(
             "–" if instance.level is None else _num(instance.level),
             _num(instance.alpha),
             _num(instance.kappa),
-            *sizes[name],
+            *outcome.sizes[name],
         ]
-        if reference_nodes is not None:
-            cells += [reference[name][0], reference[name][2]]
+        if options.reference_nodes is not None:
+            cells += [outcome.reference[name][0], outcome.reference[name][2]]
         lines.append("| " + " | ".join(map(str, cells)) + " |")
-    if skipped:
+    if outcome.skipped:
         lines += ["", "## Left out", "", "Seed images that cannot be certified:", ""]
-        lines += [f"- {name}: {reason}" for name, reason in skipped]
-    if unmixed:
+        lines += [f"- {name}: {reason}" for name, reason in outcome.skipped]
+    if outcome.unmixed:
         lines += ["", "## Not kept by the mix", "", "Their class was full (kpstudy's verdict):"]
-        lines += [""] + [f"- {name}: {status}" for name, status in unmixed]
+        lines += [""] + [f"- {name}: {status}" for name, status in outcome.unmixed]
     return "\n".join(lines) + "\n"

@@ -51,6 +51,7 @@ import time
 
 import torch
 
+from kpstudy import _checks
 from kpstudy.verify import operators
 from kpstudy.verify.graph import Graph, trace
 from kpstudy.verify.region import Region, domain_min, symbol_reach
@@ -173,8 +174,7 @@ def row_bounds(
     deadline : float, optional
         ``time.perf_counter()`` past which :class:`BoundsTimeout` is raised.
     """
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    _checks.choice(method, "method", METHODS)
     if method == "ibp":
         region = region.to_interval()
     q = region.mid.shape[1]

@@ -61,6 +61,7 @@ from torch.nn.modules.batchnorm import _BatchNorm
 from torch.nn.modules.conv import _ConvNd, _ConvTransposeNd
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from kpstudy import _checks
 from kpstudy.io import atomic_path
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.simplex_map import BoxToSimplex, SimplexWeights, lambda_of_box
@@ -285,16 +286,11 @@ def export_instance(
         raise ValueError(f"spec: expected an ArgmaxSpec, got {type(spec).__name__}")
     if spec.n_rows == 0:
         raise ValueError("spec: expected at least one group with a target, got none")
-    if input_form not in INPUT_FORMS:
-        raise ValueError(f"input_form: expected one of {INPUT_FORMS}, got {input_form!r}")
+    _checks.choice(input_form, "input_form", INPUT_FORMS)
     if dtype not in DTYPES:
         raise ValueError(f"dtype: expected torch.float32 or torch.float64, got {dtype!r}")
-    if vnnlib_version not in VNNLIB_VERSIONS:
-        raise ValueError(
-            f"vnnlib_version: expected one of {VNNLIB_VERSIONS}, got {vnnlib_version!r}"
-        )
-    if property_form not in PROPERTY_FORMS:
-        raise ValueError(f"property_form: expected one of {PROPERTY_FORMS}, got {property_form!r}")
+    _checks.choice(vnnlib_version, "vnnlib_version", VNNLIB_VERSIONS)
+    _checks.choice(property_form, "property_form", PROPERTY_FORMS)
     form = _form(input_set, input_form)
     wrapper = _Instance(model, input_set, input_form, dtype)
     if form == "pixels":
@@ -340,8 +336,7 @@ def point_of_input(input_set, x, input_form: str = "box") -> torch.Tensor:
     the image ``x`` reshaped to ``(…, *S)``. Feed the result to ``input_set.image(…,
     dtype=torch.float64)`` to get the exact image in float64.
     """
-    if input_form not in INPUT_FORMS:
-        raise ValueError(f"input_form: expected one of {INPUT_FORMS}, got {input_form!r}")
+    _checks.choice(input_form, "input_form", INPUT_FORMS)
     x = torch.as_tensor(np.asarray(x), dtype=torch.float64)
     if isinstance(input_set, Box):
         return x.reshape(*x.shape[:-1], *input_set.shape)

@@ -88,8 +88,7 @@ def bound_profile(
     ValueError
         On a bad argument; the message starts with its name.
     """
-    if method not in PROFILE_METHODS:
-        raise ValueError(f"method: expected one of {PROFILE_METHODS}, got {method!r}")
+    _checks.choice(method, "method", PROFILE_METHODS)
     _checks.integer(samples, "samples", minimum=1)
     _checks.integer(crown_rows, "crown_rows", minimum=0)
     _checks.integer(depth, "depth", minimum=0)

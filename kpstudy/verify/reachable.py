@@ -313,8 +313,7 @@ def check_witnesses(witnesses, sizes, n: int) -> None:
 def check_search(method, timeout, max_nodes, start_depth, batch=None) -> None:
     """Raise ``ValueError`` naming the first of :func:`reachable_argmax`'s search
     arguments that is not valid (before any work)."""
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    _checks.choice(method, "method", METHODS)
     check_budget(timeout, max_nodes, batch, least_nodes=0)  # 0: witnesses only
     _checks.integer(start_depth, "start_depth", minimum=0, maximum=MAX_START_DEPTH)
 

@@ -50,6 +50,16 @@ def test_seconds_takes_positive_reals_and_refuses_the_rest_by_name():
         _checks.seconds(0, "timeout", optional=True)
 
 
+def test_choice_takes_a_listed_value_and_names_the_choices_in_order():
+    assert _checks.choice("simplex", "input_form", ("box", "simplex")) == "simplex"
+    assert _checks.choice("b", "name", iter(["c", "b"])) == "b"  # any iterable, read once
+    with pytest.raises(ValueError) as refused:
+        _checks.choice("cube", "input_form", {"simplex": 1, "box": 2})
+    assert str(refused.value) == "input_form: expected one of simplex, box, got 'cube'"
+    with pytest.raises(ValueError, match=r"^n: expected one of 1, 2, got None$"):
+        _checks.choice(None, "n", ["1", "2"])
+
+
 def test_named_puts_a_check_in_the_callers_words():
     with pytest.raises(ValueError, match=r"^where: nodes: expected None or a positive integer"):
         with _checks.named({"max_nodes": "nodes"}, "where: "):

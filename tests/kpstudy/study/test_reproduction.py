@@ -161,8 +161,8 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
         (dict(tolerance_units=()), "tolerance_units: expected a tuple of distinct"),
         (
             dict(global_pose_bound={"cnn": {"pose_bound_method": "crown"}}),
-            "global_pose_bound: pose_bound_method: expected one of ('ibp', 'forward', "
-            "'zonotope'), got 'crown'",
+            "global_pose_bound: pose_bound_method: expected one of ibp, forward, zonotope, "
+            "got 'crown'",
         ),
         (
             dict(local_pose_bound={"cnn": {"pose_bound_speed": 2}}),

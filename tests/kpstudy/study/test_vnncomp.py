@@ -250,6 +250,34 @@ def test_bad_input_is_refused_with_nothing_written(study, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "notes.pt"]
 
 
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (dict(timeout=0), "timeout: expected seconds > 0, got 0"),
+        (dict(timeout=True), "timeout: expected seconds > 0, got True"),
+        (dict(timeout=float("inf")), "timeout: expected finite seconds > 0, got inf"),
+        (dict(input_form="cube"), "input_form: expected one of box, simplex, got 'cube'"),
+        (dict(vnnlib_version="3.0"), "vnnlib_version: expected one of 1.0, 2.0, got '3.0'"),
+        (dict(dtype="float16"), "dtype: expected one of float32, float64, got 'float16'"),
+        (
+            dict(tolerance_units="pixels"),
+            "tolerance_units: expected one of heatmap, paper, got 'pixels'",
+        ),
+    ],
+)
+def test_the_export_options_are_checked_before_anything_is_read(tmp_path, option, message):
+    from kpstudy.study.vnncomp import export_benchmark
+
+    checkpoint, data = tmp_path / "model.pt", tmp_path / "data"
+    checkpoint.write_text("not read")
+    data.mkdir()
+    (data / "annotations.json").write_text("not read")
+    with pytest.raises(ValueError) as refused:
+        export_benchmark(checkpoint, data, tmp_path / "out", [], **option)
+    assert str(refused.value) == message
+    assert not (tmp_path / "out").exists()
+
+
 def test_seeds_that_cannot_be_certified_are_left_out(study, tmp_path, monkeypatch):
     """A seed build_instance refuses is listed in README.md; a grid of only such seeds is
     refused, naming ``instances``, with nothing left behind."""
