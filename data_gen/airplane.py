@@ -35,7 +35,7 @@ RGB = tuple[int, int, int]
 
 VARIANTS: tuple[str, ...] = ("airliner", "swept", "stretched")
 
-#: Part names, indexed by :attr:`Airplane.part_ids`.
+#: Part names, indexed by ``Airplane.part_ids``.
 PART_NAMES: tuple[str, ...] = (
     "fuselage",
     "wing_left",
@@ -379,7 +379,7 @@ _STRETCHED = replace(
     livery=Livery(accent=(0, 122, 112), accent2=(236, 178, 36), nacelle=(0, 122, 112)),
 )
 
-#: Geometry of each variant in :data:`VARIANTS`.
+#: Geometry of each variant in ``VARIANTS``.
 GEOMETRIES: Mapping[str, AirplaneGeometry] = MappingProxyType(
     {"airliner": _AIRLINER, "swept": _SWEPT, "stretched": _STRETCHED}
 )
@@ -812,7 +812,7 @@ class Airplane:
     mesh : trimesh.Trimesh
         Triangle mesh with per-face RGBA colours (``mesh.visual.face_colors``).
     keypoints : ndarray, shape (23, 3)
-        float64, in :data:`data_gen.keypoints.KEYPOINT_NAMES` order, on the surface
+        float64, in ``data_gen.keypoints.KEYPOINT_NAMES`` order, on the surface
         seen from directly above.
     keypoint_names : tuple of str
     ground_z : float
@@ -897,7 +897,7 @@ def build_airplane(variant: str = "airliner") -> Airplane:
     Parameters
     ----------
     variant : str
-        One of :data:`VARIANTS`; ``'airliner'`` is the study's default, whose keypoints
+        One of ``VARIANTS``; ``'airliner'`` is the study's default, whose keypoints
         are :func:`data_gen.keypoints.airliner_keypoints`.
 
     Returns
@@ -951,7 +951,7 @@ def load_airplane(mesh_path, keypoints_json) -> Airplane:
     Returns
     -------
     Airplane
-        Keypoints in :data:`data_gen.keypoints.KEYPOINT_NAMES` order; ``part_ids`` None.
+        Keypoints in ``data_gen.keypoints.KEYPOINT_NAMES`` order; ``part_ids`` None.
 
     Raises
     ------

@@ -12,7 +12,7 @@ Conventions of every asset:
   (vehicles and people face +x);
 * every face carries an RGBA colour (``mesh.visual.face_colors``, uint8);
 * no randomness: variation comes from named variants (liveries, vest colours, poses,
-  body sizes), listed in :data:`OCCLUDER_NAMES`.
+  body sizes), listed in ``OCCLUDER_NAMES``.
 """
 
 from __future__ import annotations
@@ -1252,7 +1252,7 @@ def build_occluder(name: str) -> Occluder:
     Parameters
     ----------
     name : str
-        One of :data:`OCCLUDER_NAMES`.
+        One of ``OCCLUDER_NAMES``.
 
     Returns
     -------
@@ -1278,17 +1278,17 @@ def occluder_catalog(family: str | None = None) -> list[Occluder]:
     Parameters
     ----------
     family : str or None
-        One of :data:`FAMILIES`, or None for all assets.
+        One of ``FAMILIES``, or None for all assets.
 
     Returns
     -------
     list of Occluder
-        In :data:`OCCLUDER_NAMES` order.
+        In ``OCCLUDER_NAMES`` order.
 
     Raises
     ------
     ValueError
-        If ``family`` is not one of :data:`FAMILIES`.
+        If ``family`` is not one of ``FAMILIES``.
     """
     if family is not None and family not in FAMILIES:
         raise ValueError(f"family: unknown occluder family {family!r}; expected one of {FAMILIES}")

@@ -3,8 +3,8 @@
 The tree, top-down as the data flows (docs/design.md §2; each part imports only the
 parts its row there names, which tests/test_layout.py checks):
 
-- infrastructure: :mod:`kpstudy._checks` (argument checks), :mod:`kpstudy._memo` (memo
-  keys), :mod:`kpstudy._lazy` (the subpackages' re-exports), :mod:`kpstudy.io` (atomic
+- infrastructure: ``kpstudy._checks`` (argument checks), ``kpstudy._memo`` (memo
+  keys), ``kpstudy._lazy`` (the subpackages' re-exports), :mod:`kpstudy.io` (atomic
   files, the code fingerprint);
 - :mod:`kpstudy.pose`: pose math, no network — geometry and the tolerance box Ξ, PnP,
   the sensitivity ``dξ/dv``, the tolerance allocation, its Monte Carlo check;
@@ -15,7 +15,7 @@ parts its row there names, which tests/test_layout.py checks):
   method or the pose-bound method (reachable keypoint regions → PnP);
 - :mod:`kpstudy.study`: campaigns, tables, figures, the report, the VNN-COMP export and
   ``reproduce``'s stages, which the notebooks call;
-- :mod:`kpstudy.cli`: ``python -m kpstudy reproduce|train|evaluate|campaign|export-benchmark``.
+- ``kpstudy.cli``: ``python -m kpstudy reproduce|train|evaluate|campaign|export-benchmark``.
 
 Each subpackage re-exports its public names (``from kpstudy.certify import certify``).
 Conventions are those of docs/design.md §3.

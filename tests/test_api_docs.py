@@ -1,10 +1,12 @@
 """The API reference (docs/api, ``make docs``): Sphinx + numpydoc build it from the
-docstrings without a warning, it holds every public name, and a faulty docstring fails it."""
+docstrings without a warning, every cross-reference resolving (nitpicky), it holds every
+public name, and a faulty docstring or a reference that does not resolve fails it."""
 
 import importlib
 import importlib.util
 import inspect
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -67,6 +69,16 @@ def public_names(module: str) -> list[str]:
 
 
 def test_reference_builds_without_warnings(tmp_path):
+    # Nitpicky (conf.py): every cross-reference resolves; only third-party targets are
+    # ignored, never one of ours.
+    conf = api_conf()
+    assert conf.nitpicky
+    ours = ["kpstudy", "kpstudy.verify.bab.verify", "data_gen", "data_gen.airplane.VARIANTS"]
+    ours += ["verify", "Region", "OCCLUDER_NAMES"]
+    for _, target in conf.nitpick_ignore_regex:
+        assert not [name for name in ours if re.fullmatch(target, name)], target
+    assert not {target for _, target in conf.nitpick_ignore} & set(ours)
+
     built = sphinx_build(API, tmp_path)
     assert built.returncode == 0 and "WARNING" not in built.stderr, built.stderr
     assert "ERROR" not in built.stderr, built.stderr
@@ -83,7 +95,6 @@ def test_reference_builds_without_warnings(tmp_path):
             ), f"{package}.{name} is not in the reference"
     # Every public name of every module a page documents (an undocumented function would be
     # left out by autodoc without a warning).
-    conf = api_conf()
     for package in PACKAGES:
         modules = conf.public_modules(package)
         assert modules, package
@@ -133,3 +144,52 @@ def test_a_docstring_fault_fails_the_build(tmp_path, faulty):
         "Inline emphasis start-string without end-string",
     ):
         assert warning in built.stderr, built.stderr
+
+
+UNRESOLVED = '''
+from kpstudy.verify.graph import Graph
+
+
+def f(graph: Graph, x: numpy.ndarray):
+    """Return ``x``, as :func:`g` does; :func:`kpstudy.verify.no_such_function` and
+    :class:`kpstudy.verify.graph.Graph` (an object the reference does not document).
+    """
+    return x
+
+
+def g(x):
+    """Return ``x``."""
+    return x
+'''
+
+
+@pytest.mark.parametrize("faulty", [False, True], ids=["clean", "faulty"])
+def test_a_reference_that_does_not_resolve_fails_the_build(tmp_path, faulty):
+    """The build is nitpicky: a docstring's role that names a kpstudy object the reference
+    does not hold fails it, whether no such object exists or it has no entry (a module
+    without a page: written as ``code`` instead). Third-party names and the annotations of
+    kpstudy objects without an entry (autodoc's, not the docstring's) do not."""
+    package = tmp_path / "modules" / "apidocs_probe"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text('"""A probe package."""\n')
+    source = "import numpy\n" + UNRESOLVED
+    if not faulty:
+        source = source.replace(":func:`kpstudy.verify.no_such_function`", "``g``")
+        source = source.replace(":class:`kpstudy.verify.graph.Graph`", "``Graph``")
+    (package / "probe.py").write_text(source)
+    pages = tmp_path / "source"
+    pages.mkdir()
+    (pages / "index.rst").write_text("Probe\n=====\n\n.. public-modules:: apidocs_probe\n")
+
+    built = sphinx_build(pages, tmp_path / "html", pythonpath=tmp_path / "modules")
+    if not faulty:
+        assert built.returncode == 0 and "WARNING" not in built.stderr, built.stderr
+        assert {"apidocs_probe.probe.f", "apidocs_probe.probe.g"} <= inventory(tmp_path / "html")
+        return
+    assert built.returncode != 0
+    for warning in (
+        "py:func reference target not found: kpstudy.verify.no_such_function",
+        "py:class reference target not found: kpstudy.verify.graph.Graph",
+    ):
+        assert warning in built.stderr, built.stderr
+    assert built.stderr.count("reference target not found") == 2, built.stderr

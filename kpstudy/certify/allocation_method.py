@@ -14,12 +14,12 @@ of perturbed images, at one cell ``(α, κ)``:
    (``κ |M| δv ≤ α ε``, per image pixel) around the rounded keypoints;
 4. pooling on those cells → the proxy network and its spec ("each keypoint's own cell
    wins");
-5. :func:`kpstudy.verify.verify` over the exact hull of the preprocessed vertices.
+5. :func:`kpstudy.verify.bab.verify` over the exact hull of the preprocessed vertices.
 
 Steps 1–4 are :func:`build_instance`, which returns the proxy, hull and spec without
 verifying them (:mod:`kpstudy.study.vnncomp` writes them for other verifiers); step 5 and
 the record are :func:`verify_instance`. :mod:`kpstudy.certify.hull` runs both on each
-cell of a hull, with the pose-bound method beside them (:func:`kpstudy.certify.certify`).
+cell of a hull, with the pose-bound method beside them (:func:`kpstudy.certify.hull.certify`).
 
 The record also says how the target model (softmax → DSNT → PnP) does on the seed (its
 pose error and whether it lies in Ξ; the verified rate counts only those seeds) and, for
@@ -77,11 +77,11 @@ __all__ = [
 @dataclass(frozen=True)
 class AllocationOptions:
     """The allocation method's verification of an instance, :func:`verify_instance`'s
-    keywords of the same names and defaults (:func:`kpstudy.verify.verify`'s bound method,
+    keywords of the same names and defaults (:func:`kpstudy.verify.bab.verify`'s bound method,
     ``'auto'``: the zonotope; seconds; node budget, ``None``: the seconds alone), checked
-    by :func:`kpstudy.verify.verify`'s rules when made: a ``ValueError`` names the first
+    by :func:`kpstudy.verify.bab.verify`'s rules when made: a ``ValueError`` names the first
     that is not valid. The one check of these options outside the verifier
-    (:func:`kpstudy.certify.certify_cells`, the study's settings and profiles)."""
+    (:func:`kpstudy.certify.hull.certify_cells`, the study's settings and profiles)."""
 
     method: str = "auto"
     timeout: float = 60.0
@@ -349,11 +349,11 @@ def verify_instance(
     check_samples: int = 200,
     sample_seed: int = 0,
 ) -> dict:
-    """The allocation method's record of one instance: :func:`kpstudy.verify.verify` on
+    """The allocation method's record of one instance: :func:`kpstudy.verify.bab.verify` on
     ``instance`` (:func:`build_instance`'s, for ``backbone`` and ``seed``) and the target
     model's pose errors.
 
-    The keywords are :func:`kpstudy.certify.certify_cells`'s; the record is its record
+    The keywords are :func:`kpstudy.certify.hull.certify_cells`'s; the record is its record
     without ``tolerance_units``, the ``pb_*`` entries and ``total_time``. An instance
     that is not ``feasible`` is ``not_certifiable`` and is not verified.
     """

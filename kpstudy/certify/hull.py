@@ -112,14 +112,15 @@ def certify_cells(
         ``(alpha, kappa)`` of each instance
         (:func:`~kpstudy.certify.allocation_method.build_instance`'s).
     method, timeout, max_nodes :
-        Passed to :func:`kpstudy.verify.verify` (seconds; a node budget, ``None``: the
+        Passed to :func:`kpstudy.verify.bab.verify` (seconds; a node budget, ``None``: the
         seconds alone).
     check_samples : int
         For ``holds``: hull images (Dirichlet) run through the target model; 0 skips.
     sample_seed : int
     pose_bound_timeout : float, optional
-        Seconds for the second method, :class:`kpstudy.certify.HullPoseBound` (reachable
-        keypoint regions → certified pose-error bound) on the same hull; ``None`` skips it.
+        Seconds for the second method,
+        :class:`kpstudy.certify.pose_bound_method.HullPoseBound` (reachable keypoint regions
+        → certified pose-error bound) on the same hull; ``None`` skips it.
     pose_bound_stride : int
         Its cell side in heatmap pixels (1: the argmax pixel itself).
     pose_bound_method : str
@@ -145,7 +146,7 @@ def certify_cells(
         counterexample) or None),
         ``group_status`` (per keypoint), ``margin_bracket`` (the worst keypoint's margin
         over the hull: [root lower bound, smallest found by the attacks], see
-        :meth:`kpstudy.verify.Result.margin_bracket`), ``cells`` (``[lo, hi]``, each K ×
+        :meth:`kpstudy.verify.result.Result.margin_bracket`), ``cells`` (``[lo, hi]``, each K ×
         [u, v], heatmap px), ``dv`` (K × [δu, δv], the cells' half-widths, heatmap px),
         ``delta``, ``objective``, ``first_order`` (the cells' largest first-order pose error
         from the exact keypoints, a multiple of ``ε / κ``), ``seed_error`` (6 pose errors

@@ -1,9 +1,9 @@
 """Images of a hull whose argmax → PnP pose leaves Ξ: the pose-bound method's attack.
 
-* :func:`argmax_pose_errors` and :func:`argmax_outside`: the argmax → PnP pipeline's pose
+* ``argmax_pose_errors()`` and :func:`argmax_outside`: the argmax → PnP pipeline's pose
   error at given images (PnP from the nominal pose,
-  :func:`~kpstudy.certify.pose_bound_rules.pnp_pose_errors`);
-* :class:`HullArgmaxPoses`: the same at points λ of one hull, each point's made once, and
+  ``kpstudy.certify.pose_bound_rules.pnp_pose_errors()``);
+* ``HullArgmaxPoses``: the same at points λ of one hull, each point's made once, and
   the first point outside Ξ that the float64 model at the exact hull point confirms
   (a *witness*: a real counterexample);
 * :func:`targeted_witness`: projected gradient steps (Adam on the vertex weights' logits)
@@ -48,7 +48,7 @@ def argmax_pose_errors(backbone, images, seed, R, t) -> np.ndarray:
 
 def argmax_pixels_and_errors(backbone, images, seed, R, t) -> tuple[np.ndarray, np.ndarray]:
     """The argmax pixels of ``images``, as flat heatmap indices ``(B, K)`` (the first
-    maximum, as :func:`argmax_keypoints` takes it), and :func:`argmax_pose_errors`."""
+    maximum, as :func:`argmax_keypoints` takes it), and ``argmax_pose_errors()``."""
     factors = scale_factors(seed.image_size, backbone.heatmap_size)
     with torch.no_grad():
         heatmaps = backbone(images)
@@ -78,7 +78,7 @@ class HullArgmaxPoses:
         self._model64 = None
 
     def errors(self, lam) -> np.ndarray:
-        """:func:`argmax_pose_errors` ``(P, 6)`` of ``hull.image(lam)`` for ``lam (P, n)``,
+        """``argmax_pose_errors()`` ``(P, 6)`` of ``hull.image(lam)`` for ``lam (P, n)``,
         each point's made once; its argmax pixels are kept for :meth:`pixels`."""
         keys = [digest(row) for row in lam]
         missing = [i for i, k in enumerate(keys) if k not in self._errors]

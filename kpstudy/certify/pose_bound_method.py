@@ -9,7 +9,7 @@ regions) and :mod:`~kpstudy.certify.pose_bound_attack` (images whose argmax → 
 leaves Ξ); :class:`HullPoseBound` composes them on one hull, for any number of
 tolerance boxes Ξ (half-widths ``eps``, 6: degrees then metres). The steps:
 
-1. :func:`kpstudy.verify.reachable_argmax` on the backbone's heatmaps (``stride`` 1: the
+1. :func:`kpstudy.verify.reachable.reachable_argmax` on the backbone's heatmaps (``stride`` 1: the
    argmax head's own pixels; an odd ``stride`` > 1 pools ``stride × stride`` cells around
    the rounded ground truth, like the paper's proxy) gives each keypoint's possible pixels,
    a sound superset of the argmax pixels over the hull;
@@ -53,7 +53,7 @@ Verdict, the first rule that applies deciding (``pb_rule``):
 
 Before an enumerated ``unknown``,
 :func:`~kpstudy.certify.pose_bound_attack.targeted_witness` looks for an image whose
-argmax is the combination farthest outside Ξ or one of the :data:`TARGETED_MOVES`
+argmax is the combination farthest outside Ξ or one of the ``TARGETED_MOVES``
 possible one-keypoint moves that alone leave Ξ
 (:func:`~kpstudy.certify.pose_bound_rules.single_moves`); found, and its pose re-checked
 in float64 like every witness's, the instance is ``violated`` by ``'witness'``.
@@ -121,10 +121,10 @@ class PoseBoundOptions:
     """The pose-bound method's options, :class:`HullPoseBound`'s keywords of the same names
     and defaults, checked when made: a ``ValueError`` names the first that is not valid.
     The one check of these options, whoever takes them (:class:`HullPoseBound`,
-    :func:`kpstudy.certify.certify_cells`, the study's settings and profiles).
+    :func:`kpstudy.certify.hull.certify_cells`, the study's settings and profiles).
 
     ``method``, ``timeout``, ``max_nodes`` and ``start_depth`` follow
-    :func:`kpstudy.verify.reachable_argmax` (a node budget of 0 bounds no node: witnesses
+    :func:`kpstudy.verify.reachable.reachable_argmax` (a node budget of 0 bounds no node: witnesses
     only); ``start_splits`` is a number in ``[0, MAX_START_DEPTH]``, ``refine_nodes`` an
     integer >= 0 and ``stride`` an odd integer >= 1.
     """
@@ -177,7 +177,7 @@ class HullPoseBound:
     every :meth:`decide` (a campaign's α, κ cells of one hull): the argmax poses of the
     seed, the vertices and random images, the region search, the enumeration of region
     pixels, the float64 model and the targeted attacks (the argmax poses and the float64
-    model are :attr:`poses`, a :class:`~kpstudy.certify.pose_bound_attack.HullArgmaxPoses`).
+    model are ``poses``, a ``kpstudy.certify.pose_bound_attack.HullArgmaxPoses``).
 
     Parameters
     ----------
@@ -195,7 +195,7 @@ class HullPoseBound:
     stride : int
         Odd cell side in heatmap pixels; 1 certifies the argmax pixel itself.
     timeout : float
-        Seconds for :func:`kpstudy.verify.reachable_argmax`.
+        Seconds for :func:`kpstudy.verify.reachable.reachable_argmax`.
     method : {'forward', 'zonotope', 'ibp'}
         Its bounds: ``'zonotope'`` gives far smaller regions on a trained CNN, at tens
         of seconds per node on 2 CPU cores (``'forward'``: a fraction of a second).
@@ -206,18 +206,18 @@ class HullPoseBound:
         bounds no node (the witnesses alone).
     start_depth : int
         Splits of the hull before the first bounds
-        (:func:`kpstudy.verify.reachable_argmax`).
+        (:func:`kpstudy.verify.reachable.reachable_argmax`).
     start_splits : float
         More splits before the first bounds per perturbed image of the hull: the search
         starts at depth ``start_depth + ⌈start_splits · n⌉`` (at most
-        :data:`~kpstudy.verify.reachable.MAX_START_DEPTH`), nodes of about
+        ``kpstudy.verify.reachable.MAX_START_DEPTH``), nodes of about
         ``2^−start_splits`` of the hull per direction whatever its ``n``.
     refine_nodes : int
         Nodes for focused second searches where the verdict is ``unknown`` (0: none).
         Each goes on from where the search so far stopped (same method and timeout) and
         splits only the nodes that keep an unreached cell holding an involved pixel: one
         in a combination outside Ξ under the enumeration rule, one that alone takes the
-        pose outside Ξ under the linearised rule (:meth:`_refine_focus`); the rules then
+        pose outside Ξ under the linearised rule (``_refine_focus()``); the rules then
         run again on the smaller regions, and a verdict still ``unknown`` gets another
         round while nodes are left.
     random_corners : int
@@ -500,7 +500,7 @@ class HullPoseBound:
 
     def _search(self, first) -> tuple:
         """The region search. At stride 1 its witnesses start from the argmax pixels at
-        ``first`` (λ, evaluated by :attr:`poses`), the random images first and then
+        ``first`` (λ, evaluated by ``poses``), the random images first and then
         the corners, as the search would take them itself: no image is evaluated twice."""
         if self.stride != 1:
             return search_regions(self.backbone, self.hull, self.centers, self.stride, self.search)

@@ -1,11 +1,11 @@
 """Where each keypoint's argmax can go over a hull: the pose-bound method's regions.
 
-:func:`search_regions` runs :func:`kpstudy.verify.reachable_argmax` on a backbone's
+:func:`search_regions` runs :func:`kpstudy.verify.reachable.reachable_argmax` on a backbone's
 heatmaps (stride 1: the heatmap pixels themselves) or on a proxy that pools ``stride ×
-stride`` cells around the rounded ground truth (:func:`region_pooling`), and
+stride`` cells around the rounded ground truth (``region_pooling()``), and
 :func:`region_pixels` turns each keypoint's possible cells into heatmap pixels: a sound
 superset of the pixels that are the argmax somewhere in the hull (docs/design.md §4.11).
-:func:`focus_cells` picks the cells a focused second search may still remove.
+``focus_cells()`` picks the cells a focused second search may still remove.
 
 Shapes and units: a keypoint's *cells* are indices into its pooling grid (row-major,
 ``u`` fastest); its *pixels* are ``(n_k, 2)`` float64 heatmap pixels ``(u, v)``, sorted
@@ -32,13 +32,14 @@ def region_pooling(centers, stride: int, heatmap_size: int):
 def search_regions(
     backbone, hull, centers, stride: int, search: dict, focus=None, resume=None, witnesses=None
 ):
-    """Possible pixels of each keypoint over ``hull``: :func:`reachable_argmax` on the
-    stride-``stride`` proxy around ``centers (K, 2)`` (heatmap pixels) with ``search``'s
-    keywords, ``focus``, ``resume`` and ``witnesses`` (per keypoint, ``{cell: λ}``); the
-    :class:`Regions` and each keypoint's pixels ``(n_k, 2)``. At stride 1 the proxy's
-    cells are the heatmap pixels in the backbone's own order, so the backbone is searched
-    itself: its output keeps the zonotope's error symbols in blocks that the search reads
-    where it needs them."""
+    """Possible pixels of each keypoint over ``hull``:
+    :func:`~kpstudy.verify.reachable.reachable_argmax` on the stride-``stride`` proxy around
+    ``centers (K, 2)`` (heatmap pixels) with ``search``'s keywords, ``focus``, ``resume``
+    and ``witnesses`` (per keypoint, ``{cell: λ}``); the
+    :class:`~kpstudy.verify.reachable.Regions` and each keypoint's pixels ``(n_k, 2)``. At
+    stride 1 the proxy's cells are the heatmap pixels in the backbone's own order, so the
+    backbone is searched itself: its output keeps the zonotope's error symbols in blocks
+    that the search reads where it needs them."""
     hm = backbone.heatmap_size
     pooling = region_pooling(centers, stride, hm)
     if stride == 1:

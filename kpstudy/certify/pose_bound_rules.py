@@ -5,14 +5,14 @@ Given each keypoint's possible positions (its region's pixels, docs/design.md §
 * :func:`linearised_bound`: the largest linearised pose error ``|M δ|`` over the product
   of the keypoints' deviation sets, exact for that product *of the linearisation* and
   separable per keypoint;
-* :func:`enumerated_pose_error` (and :func:`enumerate_combinations`, which also says
+* :func:`enumerated_pose_error` (and ``enumerate_combinations()``, which also says
   which combination is farthest outside Ξ and which pixels take part in one outside):
   PnP on *every* combination of positions, in chunks of :data:`ENUMERATION_CHUNK`
   problems, exact for the argmax → PnP pipeline over the product;
 * :func:`single_moves`: the moves of one keypoint, the others held, that alone take the
   pose outside Ξ.
 
-Every PnP here is :func:`pnp_pose_errors`: Levenberg–Marquardt from the nominal pose
+Every PnP here is ``pnp_pose_errors()``: Levenberg–Marquardt from the nominal pose
 (:func:`kpstudy.pose.pnp.solve_pnp_batch`), a pose that PnP flags as not valid counting
 as outside Ξ (an ``inf`` error).
 

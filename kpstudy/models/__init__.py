@@ -14,7 +14,7 @@ PCK, the pose through PnP, the fraction in Ξ).
 
 Every backbone has class attributes ``input_size`` (square input side, pixels) and
 ``heatmap_size`` (square heatmap side, pixels) and uses only the operators the verifier
-bounds (:mod:`kpstudy.verify.graph`).
+bounds (``kpstudy.verify.graph``).
 
 May import: the infrastructure (``kpstudy._checks``, ``_memo``, ``_lazy``, ``io``),
 :mod:`kpstudy.pose` and :mod:`kpstudy.verify` (docs/design.md §2).

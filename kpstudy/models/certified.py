@@ -62,8 +62,8 @@ def occluder_patches(px_per_m: float = 3.0, seed: int = 0) -> list[np.ndarray]:
 
 def photometric_pair(image: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
     """The two perturbed images ``(2, 3, s, s)`` of a random brightness (``image ± d``,
-    ``d`` uniform in [0, :data:`BRIGHTNESS`]) or contrast (``image · (1 ± c)``, ``c`` uniform
-    in [0, :data:`CONTRAST`]) hull around ``image (3, s, s)`` in [0, 1], clipped to [0, 1]."""
+    ``d`` uniform in [0, ``BRIGHTNESS``]) or contrast (``image · (1 ± c)``, ``c`` uniform
+    in [0, ``CONTRAST``]) hull around ``image (3, s, s)`` in [0, 1], clipped to [0, 1]."""
     _checks.choice(kind, "kind", PHOTOMETRIC)
     if kind == "brightness":
         d = rng.uniform(0, BRIGHTNESS)

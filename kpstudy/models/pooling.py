@@ -152,7 +152,7 @@ def cell_bounds(index, params: PoolParams, size) -> tuple[int, int]:
 class CellAvgPool2d(nn.Module):
     """Average of the real pixels of each cell of one heatmap channel (exactly linear).
 
-    ``forward`` is :func:`kpstudy.verify.ops.cell_pool`: ``F.pad(x, pad)`` (zeros),
+    ``forward`` is ``kpstudy.verify.ops.cell_pool()``: ``F.pad(x, pad)`` (zeros),
     ``F.avg_pool2d(kernel_size)``, ``* scale``; the verifier traces it as that function.
 
     Parameters

@@ -19,7 +19,7 @@ With ``certified_weight`` > 0 a bound term (:mod:`kpstudy.models.certified`) joi
 the heatmap loss's worst case, bounded by kpstudy.verify's forward bounds over random
 hulls of the study's kinds around the first ``certified_hulls`` images of each batch.
 Its gradient is rescaled to ``certified_weight`` times the natural loss's gradient norm
-(:func:`_backward`), so that it shapes the network without swamping the natural term.
+(``_backward()``), so that it shapes the network without swamping the natural term.
 The term starts after ``certified_start`` natural epochs and its hulls grow from
 ``certified_scale_from`` (0: the image itself) to ``certified_scale`` × their full size
 over ``certified_ramp`` epochs, quadratically in time (the warm-up of certified training:

@@ -14,7 +14,7 @@ kpstudy reproduce``: profiles and stages; docs/design.md §6).
 
 May import: every other subpackage (:mod:`kpstudy.pose`, :mod:`kpstudy.verify`,
 :mod:`kpstudy.models`, :mod:`kpstudy.certify`) and the infrastructure; not
-:mod:`kpstudy.cli` (docs/design.md §2).
+``kpstudy.cli`` (docs/design.md §2).
 """
 
 from kpstudy._lazy import lazy_exports

@@ -60,8 +60,9 @@ def allocation_frame(
     """Optimal integer tolerances per image, α and keypoint (the data of F-alloc).
 
     For each image the nominal pose is PnP on its ground-truth keypoints, the sensitivity
-    ``M = dξ/dv`` is taken there in heatmap pixels, and :func:`allocate_tolerances` is solved
-    for ``ε = α·[EPS_R, EPS_T]`` with ``δv`` capped by the heatmap size.
+    ``M = dξ/dv`` is taken there in heatmap pixels, and
+    :func:`~kpstudy.pose.allocation.allocate_tolerances` is solved for
+    ``ε = α·[EPS_R, EPS_T]`` with ``δv`` capped by the heatmap size.
 
     Parameters
     ----------

@@ -21,7 +21,7 @@ Reliability:
   another model, dataset, settings or code never mix. The file is created with the first
   record, so that refused arguments leave nothing behind.
 * One store, one running campaign: a campaign holds an exclusive lock on its store
-  (:class:`_StoreLock`, ``fcntl.flock`` on ``<store>.lock``) while it runs, and a second
+  (``_StoreLock``, ``fcntl.flock`` on ``<store>.lock``) while it runs, and a second
   one on the same store is refused with a one-line ``ValueError`` naming ``store``. The
   operating system drops the lock of a process that dies, even by SIGKILL, so a killed
   campaign's store resumes at once.
@@ -128,7 +128,7 @@ def allocation_options(prefix: str = "", **chosen):
 @dataclass(frozen=True)
 class Settings:
     """What every instance of a campaign shares: the one declaration of the campaign
-    settings, from which the command line (:func:`add_arguments`), the notebooks and the
+    settings, from which the command line (``add_arguments()``), the notebooks and the
     profiles (their keywords) build a campaign.
 
     Attributes
@@ -139,13 +139,13 @@ class Settings:
         The data_gen dataset with its perturbation sets.
     method, timeout, nodes :
         Bound method, seconds and node budget (``None``: the seconds alone decide) per
-        instance for :func:`kpstudy.verify.verify`.
+        instance for :func:`kpstudy.verify.bab.verify`.
     check_samples : int
         Hull images through the target model for ``holds`` records.
     hull_seed : int
         Which ``m`` perturbed images make a local hull.
     pose_bound_timeout, pose_bound_stride, pose_bound_method :
-        The pose-bound method beside the allocation method (:func:`kpstudy.certify.certify`):
+        The pose-bound method beside the allocation method (:func:`kpstudy.certify.hull.certify`):
         seconds per hull (``None`` skips it), cell side, bound method.
     pose_bound_nodes, pose_bound_start_depth, pose_bound_start_splits :
         Its node budget per hull (``None``: the seconds alone decide; with a budget the
@@ -212,7 +212,7 @@ class Settings:
         return pose_bound_options(**{name: getattr(self, name) for name in POSE_BOUND_KEYWORDS})
 
     def certify_options(self) -> dict:
-        """The keywords of :func:`kpstudy.certify.certify_cells` these settings give."""
+        """The keywords of :func:`kpstudy.certify.hull.certify_cells` these settings give."""
         options = {f.name: getattr(self, f.name) for f in fields(self)}
         for name in ("checkpoint", "data_dir", "hull_seed"):
             del options[name]
@@ -221,7 +221,7 @@ class Settings:
 
     @classmethod
     def from_arguments(cls, args) -> Settings:
-        """The settings of parsed :func:`add_arguments` options (``args.checkpoint``,
+        """The settings of parsed ``add_arguments()`` options (``args.checkpoint``,
         ``args.data``)."""
         chosen = {f.name: getattr(args, f.name) for f in fields(cls) if "help" in f.metadata}
         return cls(str(args.checkpoint), str(args.data), **chosen)
@@ -935,7 +935,7 @@ def instance_vertices(instance: Instance, data_dir, hull_seed: int = 0):
 def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
     """Certify the instances of one hull (one group of :func:`_by_hull`: its α, κ cells)
     in this process, one record each: what depends on the hull alone, such as the
-    pose-bound method's region search, is made once (:func:`kpstudy.certify.certify_cells`)."""
+    pose-bound method's region search, is made once (:func:`kpstudy.certify.hull.certify_cells`)."""
     from data_gen.perturb import load_perturbations
     from kpstudy.certify.hull import certify_cells
 

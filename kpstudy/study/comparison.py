@@ -120,7 +120,7 @@ def method_cells(table: pd.DataFrame) -> pd.DataFrame:
     DataFrame
         Columns ``model`` (``''`` without one), ``method`` (``'alloc (heatmap)'``,
         ``'alloc (paper)'``, ``'alloc'``, ``'pb'``), the cell's :data:`CONDITIONS` present,
-        ``kappa``, ``alpha``, then :data:`CELL_COLUMNS`: counts (``not_certifiable``: the
+        ``kappa``, ``alpha``, then ``CELL_COLUMNS``: counts (``not_certifiable``: the
         allocation method's only, NaN for ``pb`` and tables without it), ``rate`` (holds
         among seeds inside Ξ ÷ those seeds, NaN without any; for ``pb``, seeds whose argmax
         → PnP pose is inside Ξ, ``pb_seeds_inside``, where the table has them) and its 95 %

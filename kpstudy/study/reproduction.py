@@ -754,7 +754,7 @@ def run_notebooks(
 
 def execute_notebook(source: Path, target: Path, params: dict, log: Path, cwd=NOTEBOOKS) -> None:
     """Run the notebook ``source`` with ``params`` into ``target`` under papermill, in a
-    kernel of its own (:func:`kernel_manager`, its stderr to ``log``; :func:`_ipc_kernel`)
+    kernel of its own (:func:`kernel_manager`, its stderr to ``log``; ``_ipc_kernel()``)
     started in ``cwd``.
 
     Ctrl-C reaches the kernel too (the terminal signals the whole process group), which

@@ -2,7 +2,7 @@
 
 :func:`export_benchmark` writes each instance of a campaign grid
 (:func:`kpstudy.study.campaign.grid`) in the layout of the VNN-COMP benchmarks, so that any
-verifier that reads ONNX + VNN-LIB runs exactly what :func:`kpstudy.certify.certify`
+verifier that reads ONNX + VNN-LIB runs exactly what :func:`kpstudy.certify.hull.certify`
 verifies::
 
     DIR/onnx/NAME.onnx        the proxy with the hull folded in and, by default, each
@@ -15,8 +15,8 @@ verifies::
 
 Each instance's vertices are those of the campaign (:func:`data_gen.perturb.hull_vertices`
 with the campaign's default ``hull_seed``), its proxy, hull and spec those of
-:func:`kpstudy.certify.build_instance` under the chosen tolerance reading. With
-``reference_nodes``, :func:`kpstudy.verify.verify` decides each instance within that node
+:func:`kpstudy.certify.allocation_method.build_instance` under the chosen tolerance reading. With
+``reference_nodes``, :func:`kpstudy.verify.bab.verify` decides each instance within that node
 budget (the campaign's verdict for that budget, on any machine), and ``mix`` keeps the
 grid's instances, in order, only while their verdict's class (``holds``, ``violated``,
 ``unknown``) has fewer than ``mix``: a benchmark of proofs, refutations and hard cases.
@@ -44,7 +44,7 @@ __all__ = ["DTYPES", "REFERENCE_METHOD", "VERDICTS", "export_benchmark", "instan
 
 #: The exported networks' dtypes by name (``dtype`` of :func:`export_benchmark`).
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-#: The bound method of the reference verdicts (:func:`kpstudy.verify.verify`'s default).
+#: The bound method of the reference verdicts (:func:`kpstudy.verify.bab.verify`'s default).
 REFERENCE_METHOD = "auto"
 #: The classes of reference verdicts that ``mix`` balances: proofs, refutations, hard cases.
 VERDICTS = ("holds", "violated", "unknown")
@@ -181,7 +181,7 @@ def export_benchmark(
         cells: ``'heatmap'`` (sound to first order; on the 64×64 CNN its instances tend
         to be violated at the seed image) or the paper's, larger cells.
     reference_nodes : int, optional
-        Decide each instance with :func:`kpstudy.verify.verify` (method
+        Decide each instance with :func:`kpstudy.verify.bab.verify` (method
         :data:`REFERENCE_METHOD`, this node budget, no time budget) and write
         ``reference.csv``: ``name,status,time,nodes,method,max_nodes`` (header; seconds
         of this machine). None (default): no verification, no reference.csv.
@@ -199,13 +199,14 @@ def export_benchmark(
     -------
     dict
         ``out`` (Path), ``written`` (instance names, in order), ``skipped``
-        (``(name, reason)`` of the seeds :func:`kpstudy.certify.build_instance` refuses:
-        no valid nominal pose, a keypoint outside the heatmap, and of the instances that
-        are not certifiable at the heatmap's resolution or have nothing to verify: every
-        keypoint's cell its whole heatmap), ``reference`` (name → ``(status,
-        seconds, nodes)`` of the written instances; empty without ``reference_nodes``),
-        ``unmixed`` (``(name, status)`` of the instances ``mix`` left out) and
-        ``unexamined`` (how many of the grid's instances ``mix`` never built).
+        (``(name, reason)`` of the seeds
+        :func:`kpstudy.certify.allocation_method.build_instance` refuses: no valid nominal
+        pose, a keypoint outside the heatmap, and of the instances that are not certifiable
+        at the heatmap's resolution or have nothing to verify: every keypoint's cell its
+        whole heatmap), ``reference`` (name → ``(status, seconds, nodes)`` of the written
+        instances; empty without ``reference_nodes``), ``unmixed`` (``(name, status)`` of
+        the instances ``mix`` left out) and ``unexamined`` (how many of the grid's instances
+        ``mix`` never built).
 
     Raises
     ------

@@ -7,9 +7,9 @@ node's vertices and centroid and, where the bounds fail, projected gradient desc
 the worst margin looks for a counterexample inside the node; nodes still open are split
 (longest edge bisection for a simplex, longest side for a cube, widest pixel for a box),
 the two children exactly covering their parent. The loop is
-:func:`kpstudy.verify.search.branch_and_bound`, shared with
+``kpstudy.verify.search.branch_and_bound()``, shared with
 :func:`~kpstudy.verify.reachable.reachable_argmax`; what a node decides is
-:meth:`_Search.decide`.
+``_Search.decide()``.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def verify(
     Parameters
     ----------
     model : nn.Module
-        Eval-mode network of the operators of :mod:`kpstudy.verify.graph`; its flattened
+        Eval-mode network of the operators of ``kpstudy.verify.graph``; its flattened
         output has ``spec.n_outputs`` entries.
     input_set : ConvexHull, Parallelotope or Box
         Images in the model's dtype (else a ValueError naming ``input_set``).
@@ -208,7 +208,7 @@ class _Search:
         self.tol_abs = absolute_tol(graph, input_set, tol)
 
     def decide(self, nodes, mask, level: int, *, attack_steps: int, stop: bool) -> Step:
-        """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: the groups still
+        """One batch of ``kpstudy.verify.search.branch_and_bound()``: the groups still
         open ``(B, G)`` in ``nodes`` after cheap falsification (corners and centroid),
         bounds, then ``attack_steps`` of gradient descent (eight times as many at the
         root) where the bounds fail. With ``stop``, the search stops at a counterexample

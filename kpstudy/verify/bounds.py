@@ -7,10 +7,10 @@ A batch of ``B`` regions (branch-and-bound nodes, each input set's
 box, as an interval (no ``θ``). Every value of the network is then bounded by two affine
 functions of ``θ``, stored as coefficient stacks ``(B, q, *shape)`` (row 0 the constant,
 rows 1… the ``θ`` coefficients) in centre/radius form: lower ``mid − rad``, upper
-``mid + rad`` (:class:`~kpstudy.verify.region.Region`). The minimum of ``a0 + a·θ`` is
+``mid + rad`` (``kpstudy.verify.region.Region``). The minimum of ``a0 + a·θ`` is
 exact: ``a0 + min(0, min_i a_i)`` over the simplex, ``a0 + Σ_i min(0, a_i)`` over the
 cube. This module runs the passes; each operator's rules for every method are in
-:mod:`kpstudy.verify.operators`.
+``kpstudy.verify.operators``.
 
 Methods
 -------
@@ -33,7 +33,7 @@ Methods
     is what keeps bounds near the sampled range (``'forward'`` grows ~10× per layer); its
     cost is one pass of every layer per symbol (thousands of symbols on the CNN), on the
     window the symbol reaches: each symbol keeps its own window, the symbols of one ReLU
-    in one block (:mod:`kpstudy.verify.symbols`), until an operator that mixes space (a
+    in one block (``kpstudy.verify.symbols``), until an operator that mixes space (a
     pool, a flatten, a linear layer) needs the dense stack; the proxy's cell pool reads
     the blocks itself.
     Symbols are numbered across branches, so two ReLU branches never share one. Past
@@ -64,7 +64,7 @@ ZONOTOPE_ELEMENTS = 2**29
 
 
 def zonotope_min(a: torch.Tensor, q: int, domain: str) -> torch.Tensor:
-    """Exact minimum of ``a[:, :q]`` over ``θ`` (:func:`domain_min`) plus rows ``a[:, q:]``
+    """Exact minimum of ``a[:, :q]`` over ``θ`` (``domain_min()``) plus rows ``a[:, q:]``
     over error symbols in ``[−1, 1]``, for ``a (B, q + E, …)``."""
     return domain_min(a[:, :q], domain) - symbol_reach(a, q)
 
@@ -86,20 +86,20 @@ def propagate(
     """Forward coefficient bounds of the output for ``B`` regions, and what CROWN needs
     (node → what its rule saved, for :func:`backward`).
 
-    Each node is bounded by its operator's rules (:mod:`kpstudy.verify.operators`).
+    Each node is bounded by its operator's rules (``kpstudy.verify.operators``).
 
     With ``zonotope``, unstable ReLUs add error-symbol rows to the centre stacks (method
     ``'zonotope'``): a value's ``mid`` is ``(B, q + E, *S)``, its first ``q`` rows the
     affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
     most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
     ``(B, q, *S)``. Inside, the symbols travel in spatial blocks where they can
-    (:mod:`kpstudy.verify.symbols`); what ``visit(i, value)`` (if given) sees of
-    every node is a dense :class:`Region`, and so is the output unless ``dense`` is False: then an
-    output that holds its symbols in blocks keeps them (:attr:`Region.blocks`), for a
-    caller that reads a few entries' symbols (:meth:`Region.symbols_at`) of an output
+    (``kpstudy.verify.symbols``); what ``visit(i, value)`` (if given) sees of
+    every node is a dense ``Region``, and so is the output unless ``dense`` is False: then an
+    output that holds its symbols in blocks keeps them (``Region.blocks``), for a
+    caller that reads a few entries' symbols (``Region.symbols_at()``) of an output
     whose dense stack (symbols × outputs) would dwarf the pass itself. A ``region`` that
     holds symbols already (an earlier pass's output: the head of
-    :meth:`~kpstudy.verify.graph.Graph.split_affine_tail`) carries them on, numbering new
+    ``kpstudy.verify.graph.Graph.split_affine_tail()``) carries them on, numbering new
     ones after its ``rows``; it needs ``zonotope``. Past ``deadline``
     (``time.perf_counter()`` seconds) it raises :class:`BoundsTimeout` between two layers:
     one node of a large zonotope can take minutes.
@@ -245,7 +245,7 @@ def output_bounds(model, input_set, method: str = "forward") -> tuple[torch.Tens
     Parameters
     ----------
     model : nn.Module
-        Built from the operators of :mod:`kpstudy.verify.graph`.
+        Built from the operators of ``kpstudy.verify.graph``.
     input_set : ConvexHull, Parallelotope or Box
     method : {'ibp', 'forward', 'crown', 'zonotope'}
 

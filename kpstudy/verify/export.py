@@ -10,7 +10,7 @@ NeuralSAT, NNV, PyRAT, Marabou, …) can run the very instance this package chec
     set is exactly their hull in real arithmetic, not that of rounded directions):
 
     * ``input_form='box'`` (default): input ``u`` of shape ``(1, n)`` in ``[0, 1]^n``,
-      mapped onto the simplex by :class:`~kpstudy.verify.simplex_map.BoxToSimplex` (a
+      mapped onto the simplex by ``kpstudy.verify.simplex_map.BoxToSimplex`` (a
       sort by a ReLU min/max network, then the spacings), so that any verifier that
       accepts box inputs runs the exact hull;
     * ``input_form='simplex'``: input ``lam`` of shape ``(1, n)`` with ``λ ≥ 0`` and the
@@ -76,13 +76,13 @@ DTYPES = {torch.float32: "float32", torch.float64: "float64"}
 class WorstMargins(nn.Module):
     """``y (B, m) ↦ z (B, G)``: per group with margin rows, its worst margin
     ``z_g = min_{j ≠ t_g} (y[t_g] − y[j])`` (``t_g``: the target, ``j``: the group's other
-    rows), for the groups of ``spec.row_group`` in order (:attr:`groups`).
+    rows), for the groups of ``spec.row_group`` in order (``groups``).
 
     The margins are :meth:`~kpstudy.verify.spec.ArgmaxSpec.margins`' rows (the same
     floating-point numbers: ``y[t] − y[j]``), their minimum a ReLU tree,
     ``min(a, b) = a − relu(a − b)``. Each group's rows are padded with copies of
-    themselves to ``L`` (:attr:`width`, the least power of two ≥ every group's row count;
-    :func:`_pad`), the ``G`` blocks reshaped to ``(B, G, L)``, and each of the ``log2 L``
+    themselves to ``L`` (``width``, the least power of two ≥ every group's row count;
+    ``_pad()``), the ``G`` blocks reshaped to ``(B, G, L)``, and each of the ``log2 L``
     levels takes the minimum of the block's two halves, entry by entry. Padding leaves
     each minimum as it is (copies only); it makes the second half of a block a copy of
     the first wherever a group has run out of rows, so that the tree's extra pairs are
@@ -101,7 +101,7 @@ class WorstMargins(nn.Module):
     Ties and rounding: ``z_g ≤ 0`` exactly when a margin row of ``g`` is ``≤ 0`` in real
     arithmetic. In floating point a row ``≤ 0`` still gives ``z_g ≤ 0`` (rounding is
     monotone: ``a − (a − b) ≤ 0`` for ``b ≤ 0 < a``), so a tie is a violation as in
-    :func:`kpstudy.verify.verify`; the tree can only add a violation, ``z_g = 0`` where
+    :func:`kpstudy.verify.bab.verify`; the tree can only add a violation, ``z_g = 0`` where
     a positive row is below half a unit in the last place of its partner.
 
     Attributes
@@ -223,7 +223,7 @@ def export_instance(
       tree to relax, for verifiers that cope with ~10^4 disjuncts (and Marabou 2.0.0,
       whose ONNX reader has no ``Slice``).
 
-    Ties are violations in both, as in :func:`kpstudy.verify.verify` (a margin of
+    Ties are violations in both, as in :func:`kpstudy.verify.bab.verify` (a margin of
     exactly 0 is not verified): ``Y_g = 0`` is a violation as ``Y_j = Y_t`` is. In real
     arithmetic ``Y_g ≤ 0`` exactly when some row of group ``g`` has ``Y_j ≥ Y_t``; in
     floating point a row ``≤ 0`` still gives ``Y_g ≤ 0`` (see :class:`WorstMargins`).

@@ -48,7 +48,7 @@ def bound_profile(
     Parameters
     ----------
     model : nn.Module
-        Built from the operators of :mod:`kpstudy.verify.graph` (eval mode).
+        Built from the operators of ``kpstudy.verify.graph`` (eval mode).
     input_set : ConvexHull, Parallelotope or Box
     method : {'ibp', 'forward', 'zonotope'}
         How every node is bounded over the whole set (one branch-and-bound root, or each
@@ -60,7 +60,7 @@ def bound_profile(
         Varying neurons per affine node also bounded by CROWN from that node (0: none).
     depth : int
         Splits of the set before bounding, as a branch and bound's start depth
-        (:meth:`~kpstudy.verify.ConvexHull.split`; 0: the root alone): each of the
+        (:meth:`~kpstudy.verify.sets.ConvexHull.split`; 0: the root alone): each of the
         ``2^depth`` nodes is bounded on its own and a neuron's bounds are their union, the
         bounds the search starts from. ``crown_rows`` needs ``depth`` 0.
     seed : int

@@ -15,7 +15,7 @@ undropped indices is the possible set. Witnesses come from the concrete model at
 set's corners, random points and every node's centre: the argmax there is reached. A
 node is split while it keeps, for some group, an index not yet reached; the search ends
 when the possible and reached sets agree (``complete``) or the budget is spent. The loop
-is :func:`kpstudy.verify.search.branch_and_bound`, shared with
+is ``kpstudy.verify.search.branch_and_bound()``, shared with
 :func:`~kpstudy.verify.bab.verify`.
 
 With the zonotope on a network that is affine after its last ReLU, a node is first
@@ -141,7 +141,7 @@ def reachable_argmax(
     Parameters
     ----------
     model : nn.Module
-        Eval-mode network of the operators of :mod:`kpstudy.verify.graph`; its flattened
+        Eval-mode network of the operators of ``kpstudy.verify.graph``; its flattened
         output is the concatenation of the groups.
     input_set : ConvexHull or Parallelotope
     group_sizes : sequence of int
@@ -389,7 +389,7 @@ class _Reach:
                     self.witnesses[g][i] = chunk[p].clone()
 
     def decide(self, nodes, parent, level: int) -> Step:
-        """One batch of :func:`~kpstudy.verify.search.branch_and_bound`: witnesses at the
+        """One batch of ``kpstudy.verify.search.branch_and_bound()``: witnesses at the
         nodes' centres, then the indices still possible ``(B, G, S)`` in each node (those
         of its ``parent`` not provably beaten); a node stays open while it keeps an index
         of :attr:`focus` without a witness, and a closed node's indices join

@@ -34,7 +34,7 @@ class Counterexample:
 
 @dataclass
 class Result:
-    """Outcome of :func:`kpstudy.verify.verify`.
+    """Outcome of :func:`kpstudy.verify.bab.verify`.
 
     Attributes
     ----------

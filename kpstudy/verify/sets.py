@@ -9,7 +9,7 @@ ModelVerification.jl treats a hull: a superset with ``n!`` times the volume); a
 
 Branch and bound works on *nodes*: a sub-simplex (its ``n + 1`` vertices in λ), a
 sub-cube (``lo, hi`` in λ) or a sub-box (``lower, upper`` images). The bound engine only
-needs each node's :class:`~kpstudy.verify.region.Region`: its affine input
+needs each node's ``kpstudy.verify.region.Region``: its affine input
 ``x = c + Σ_i θ_i G_i`` over a domain (``'simplex'`` or ``'cube'``) or, for a box, its
 interval.
 
@@ -54,7 +54,7 @@ class ConvexHull:
     tensor([2., 2.])
     """
 
-    #: The domain of λ in its regions (:func:`~kpstudy.verify.region.domain_min`).
+    #: The domain of λ in its regions (``kpstudy.verify.region.domain_min()``).
     domain = "simplex"
 
     def __init__(self, vertices) -> None:

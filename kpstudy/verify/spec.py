@@ -85,7 +85,7 @@ class ArgmaxSpec:
         return len(self.group_sizes)
 
     def check_output(self, n_outputs: int) -> None:
-        """Refuse a model whose flattened output size is not :attr:`n_outputs`."""
+        """Refuse a model whose flattened output size is not ``n_outputs``."""
         if n_outputs != self.n_outputs:
             raise ValueError(
                 f"spec: expected a model with {self.n_outputs} outputs "
