@@ -337,20 +337,12 @@ def _campaign(args) -> None:
     from tqdm.auto import tqdm
 
     from kpstudy.io import check_output_file, write_table
-    from kpstudy.study.campaign import InstanceErrors, ResultStore, Settings, grid, run_campaign
+    from kpstudy.study.campaign import InstanceErrors, ResultStore, Settings, run_campaign
 
     if args.out:  # OUT.csv and OUT.md, checked before the work
         check_output_file(Path(f"{args.out}.csv"), "out")
     settings = Settings.from_arguments(args)
-    instances = grid(
-        args.data,
-        args.kind,
-        alphas=args.alphas,
-        kappas=args.kappas,
-        ms=args.ms,
-        levels=args.levels,
-        seeds=args.seeds,
-    )
+    instances = _grid(args)
 
     listed = set()
 
@@ -391,20 +383,12 @@ def _campaign(args) -> None:
         )
 
 
-def _export_benchmark(args, argv) -> None:
-    """Export the grid's instances; bad input (a missing checkpoint, an unknown kind, an
-    ``--out`` that is a file or a non-empty folder, …) is refused before anything is
-    written."""
-    import shlex
-
+def _grid(args) -> list:
+    """The instances ``--data``, ``--kind`` and the grid options name
+    (:func:`kpstudy.study.campaign.grid`)."""
     from kpstudy.study.campaign import grid
-    from kpstudy.study.vnncomp import export_benchmark
 
-    if not Path(args.checkpoint).is_file():
-        raise FileNotFoundError(f"checkpoint: no file at {args.checkpoint}")
-    if not Path(args.data, "annotations.json").is_file():
-        raise FileNotFoundError(f"data: no data_gen dataset at {args.data}")
-    instances = grid(
+    return grid(
         args.data,
         args.kind,
         alphas=args.alphas,
@@ -413,6 +397,21 @@ def _export_benchmark(args, argv) -> None:
         levels=args.levels,
         seeds=args.seeds,
     )
+
+
+def _export_benchmark(args, argv) -> None:
+    """Export the grid's instances; bad input (a missing checkpoint, an unknown kind, an
+    ``--out`` that is a file or a non-empty folder, …) is refused before anything is
+    written."""
+    import shlex
+
+    from kpstudy.study.vnncomp import export_benchmark
+
+    if not Path(args.checkpoint).is_file():
+        raise FileNotFoundError(f"checkpoint: no file at {args.checkpoint}")
+    if not Path(args.data, "annotations.json").is_file():
+        raise FileNotFoundError(f"data: no data_gen dataset at {args.data}")
+    instances = _grid(args)
     done = export_benchmark(
         args.checkpoint,
         args.data,
