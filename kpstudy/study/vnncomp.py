@@ -35,6 +35,7 @@ import math
 import os
 import shutil
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -83,13 +84,14 @@ class _Options:
 
 @dataclass(frozen=True)
 class _Outcome:
-    """What an export made of the grid: its ``instances`` and their ``names``, the
-    ``sizes`` (n inputs, cells, outputs, disjuncts) of those written, the ``skipped``
-    ``(name, reason)``, the ``reference`` verdicts, the ``unmixed`` ``(name, status)`` and
-    the ``unexamined`` count."""
+    """What an export made of the grid: its ``instances`` and their ``names``, the names
+    ``written`` (in order) and their ``sizes`` (n inputs, cells, outputs, disjuncts), the
+    ``skipped`` ``(name, reason)``, the ``reference`` verdicts, the ``unmixed``
+    ``(name, status)`` and the ``unexamined`` count."""
 
     instances: list
     names: list
+    written: list
     sizes: dict
     skipped: list
     reference: dict
@@ -216,26 +218,61 @@ def export_benchmark(
         ``tolerance_units``, ``reference_nodes``, ``mix``, ``instances``), before anything
         is written.
     """
-    from tqdm.auto import tqdm
-
-    from kpstudy import _checks
-    from kpstudy.certify.allocation_method import build_instance
-    from kpstudy.io import staged_directory, write_text_atomic
-    from kpstudy.pose.allocation import TOLERANCE_UNITS
-    from kpstudy.study.campaign import Settings, _context, instance_vertices, provenance
-    from kpstudy.verify import verify
-    from kpstudy.verify.export import (
-        INPUT_FORMS,
-        PROPERTY_FORMS,
-        VNNLIB_VERSIONS,
-        export_instance,
+    checkpoint, data_dir = _check_sources(checkpoint, data_dir)
+    options = _check_options(
+        timeout=timeout,
+        input_form=input_form,
+        vnnlib_version=vnnlib_version,
+        dtype=dtype,
+        property_form=property_form,
+        tolerance_units=tolerance_units,
+        reference_nodes=reference_nodes,
+        mix=mix,
     )
+    instances = _check_instances(instances)
+    out = _check_out(out)
+    command = command or (
+        f"kpstudy.study.export_benchmark({str(checkpoint)!r}, {str(data_dir)!r}, {str(out)!r}, …)"
+    )
+    outcome = _export(checkpoint, data_dir, out, instances, options, command, progress)
+    return {
+        "out": out,
+        "written": outcome.written,
+        "skipped": outcome.skipped,
+        "reference": outcome.reference,
+        "unmixed": outcome.unmixed,
+        "unexamined": outcome.unexamined,
+    }
 
+
+def _check_sources(checkpoint, data_dir) -> tuple[Path, Path]:
+    """``checkpoint`` a file and ``data_dir`` a data_gen dataset, as Paths (one line
+    naming ``checkpoint`` or ``data`` otherwise)."""
     checkpoint, data_dir = Path(checkpoint), Path(data_dir)
     if not checkpoint.is_file():
         raise FileNotFoundError(f"checkpoint: no file at {checkpoint}")
     if not (data_dir / "annotations.json").is_file():
         raise FileNotFoundError(f"data: no data_gen dataset at {data_dir}")
+    return checkpoint, data_dir
+
+
+def _check_options(
+    *,
+    timeout,
+    input_form,
+    vnnlib_version,
+    dtype,
+    property_form,
+    tolerance_units,
+    reference_nodes,
+    mix,
+) -> _Options:
+    """The export options of :func:`export_benchmark`, checked in the order of its
+    signature (one line naming the first one wrong)."""
+    from kpstudy import _checks
+    from kpstudy.pose.allocation import TOLERANCE_UNITS
+    from kpstudy.verify.export import INPUT_FORMS, PROPERTY_FORMS, VNNLIB_VERSIONS
+
     timeout = _checks.seconds(timeout, "timeout")
     if not math.isfinite(timeout):  # written into instances.csv: no cap is not a timeout
         raise ValueError(f"timeout: expected finite seconds > 0, got {timeout!r}")
@@ -248,11 +285,7 @@ def export_benchmark(
     _checks.integer(mix, "mix", minimum=1, optional=True)
     if mix is not None and reference_nodes is None:
         raise ValueError("mix: selects by kpstudy's verdicts; give reference_nodes too")
-    instances = list(dict.fromkeys(instances))
-    if not instances:
-        raise ValueError("instances: the grid is empty; nothing to export")
-    out = _check_out(out)
-    options = _Options(
+    return _Options(
         timeout,
         input_form,
         vnnlib_version,
@@ -262,135 +295,191 @@ def export_benchmark(
         reference_nodes,
         mix,
     )
+
+
+def _check_instances(instances) -> list:
+    """``instances`` in order without duplicates (one line naming ``instances`` if there
+    are none)."""
+    instances = list(dict.fromkeys(instances))
+    if not instances:
+        raise ValueError("instances: the grid is empty; nothing to export")
+    return instances
+
+
+def _export(
+    checkpoint: Path,
+    data_dir: Path,
+    out: Path,
+    instances: list,
+    options: _Options,
+    command: str,
+    progress: bool,
+) -> _Outcome:
+    """Build the benchmark in ``out``'s staging folder and move it onto ``out``: the
+    instances, then instances.csv, reference.csv and README.md. A grid of which no
+    instance can be written leaves nothing behind (a ``ValueError`` naming
+    ``instances``); any other failure leaves the staging folder."""
+    from kpstudy.io import staged_directory, write_text_atomic
+    from kpstudy.study.campaign import Settings, _context, provenance
+
     settings = Settings(
         str(checkpoint),
         str(data_dir),
-        timeout=timeout,
-        nodes=reference_nodes,
-        tolerance_units=tolerance_units,
+        timeout=options.timeout,
+        nodes=options.reference_nodes,
+        tolerance_units=options.tolerance_units,
     )
     backbone, seed_of = _context(str(checkpoint), str(data_dir))  # refuses a bad checkpoint
     origin = provenance(settings)
-    names = [instance_name(i) for i in instances]
     config = {"provenance": origin, "instances": [i.key for i in instances], **asdict(options)}
-    written, skipped, sizes, reference, unmixed = [], [], {}, {}, []
-    kept = dict.fromkeys(VERDICTS, 0)
-    unexamined = 0
+    names = [instance_name(i) for i in instances]
+    build = partial(
+        _build, backbone, seed_of, data_dir, settings.hull_seed, options.tolerance_units
+    )
     staged = None
     try:
         with staged_directory(out, config) as (staging, _):
             staged = staging
-            for sub in ("onnx", "vnnlib"):
-                (staging / sub).mkdir(exist_ok=True)
-            work = staging / ".instance"
-            for index, (instance, name) in enumerate(
-                tqdm(
-                    list(zip(instances, names)),
-                    desc="instances",
-                    unit="inst",
-                    disable=not progress,
-                )
-            ):
-                if mix is not None and min(kept.values()) >= mix:
-                    unexamined = len(instances) - index
-                    break
-                onnx_path = staging / "onnx" / f"{name}.onnx"
-                vnnlib_path = staging / "vnnlib" / f"{name}.vnnlib"
-                vertices = instance_vertices(instance, data_dir, settings.hull_seed)
-                try:
-                    built = build_instance(
-                        backbone,
-                        vertices,
-                        seed_of(instance.image_id),
-                        alpha=instance.alpha,
-                        kappa=instance.kappa,
-                        tolerance_units=tolerance_units,
-                    )
-                except ValueError as exc:  # a seed that cannot be certified: no instance
-                    skipped.append((name, str(exc)))
-                    continue
-                if not built.feasible:
-                    skipped.append((name, _NOT_CERTIFIABLE.format(built.first_order)))
-                    continue
-                if built.spec.n_rows == 0:
-                    skipped.append((name, _NOTHING_TO_VERIFY))
-                    continue
-                if reference_nodes is not None:
-                    result = verify(
-                        built.proxy,
-                        built.hull,
-                        built.spec,
-                        method=REFERENCE_METHOD,
-                        timeout=math.inf,
-                        max_nodes=reference_nodes,
-                    )
-                    if mix is not None and kept[result.status] >= mix:
-                        unmixed.append((name, result.status))
-                        continue
-                    kept[result.status] += 1
-                    reference[name] = (result.status, result.time, result.nodes)
-                if work.exists():
-                    shutil.rmtree(work)
-                info = export_instance(
-                    work,
-                    built.proxy,
-                    built.hull,
-                    built.spec,
-                    input_form=input_form,
-                    dtype=DTYPES[dtype],
-                    vnnlib_version=vnnlib_version,
-                    property_form=property_form,
-                )
-                text = (work / "spec.vnnlib").read_text()
-                write_text_atomic(vnnlib_path, text.replace("model.onnx", f"onnx/{name}.onnx"))
-                os.replace(work / "model.onnx", onnx_path)  # the pair is complete only now
-                written.append(name)
-                sizes[name] = (
-                    info["n_inputs"],
-                    built.spec.n_outputs,
-                    info["n_outputs"],
-                    info["n_disjuncts"],
-                )
-            if work.exists():
-                shutil.rmtree(work)
-            if not written:
-                raise _NothingWritten(
-                    "instances: no seed image of the grid can be certified ("
-                    + "; ".join(f"{n}: {r}" for n, r in skipped[:3])
-                    + ")"
-                )
-            rows = [f"onnx/{n}.onnx,vnnlib/{n}.vnnlib,{_num(timeout)}" for n in written]
-            write_text_atomic(staging / "instances.csv", "\n".join(rows) + "\n")
-            if reference_nodes is not None:
-                rows = ["name,status,time,nodes,method,max_nodes"] + [
-                    f"{n},{status},{seconds:.3f},{nodes},{REFERENCE_METHOD},{reference_nodes}"
-                    for n, (status, seconds, nodes) in reference.items()
-                ]
-                write_text_atomic(staging / "reference.csv", "\n".join(rows) + "\n")
-            readme = _readme(
-                command
-                or (
-                    f"kpstudy.study.export_benchmark({str(checkpoint)!r}, "
-                    f"{str(data_dir)!r}, {str(out)!r}, …)"
-                ),
-                checkpoint,
-                data_dir,
-                origin,
-                options,
-                _Outcome(instances, names, sizes, skipped, reference, unmixed, unexamined),
-            )
+            outcome = _write_instances(staging, instances, names, build, options, progress)
+            _write_lists(staging, options, outcome)
+            readme = _readme(command, checkpoint, data_dir, origin, options, outcome)
             write_text_atomic(staging / "README.md", readme)
     except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
         shutil.rmtree(staged, ignore_errors=True)
         raise ValueError(str(exc)) from None
-    return {
-        "out": out,
-        "written": written,
-        "skipped": skipped,
-        "reference": reference,
-        "unmixed": unmixed,
-        "unexamined": unexamined,
-    }
+    return outcome
+
+
+def _write_instances(
+    staging: Path, instances: list, names: list, build, options: _Options, progress: bool
+) -> _Outcome:
+    """Walk ``instances`` (named ``names``) in order: ``build`` each (:func:`_build`), with
+    ``options.reference_nodes`` decide it (:func:`_reference_verdict`) and keep it only
+    while ``options.mix`` allows, and write those kept into ``staging``
+    (:func:`_write_instance`). What the walk made of them as an :class:`_Outcome`;
+    :class:`_NothingWritten` if it wrote none."""
+    from tqdm.auto import tqdm
+
+    written, skipped, sizes, reference, unmixed = [], [], {}, {}, []
+    kept = dict.fromkeys(VERDICTS, 0)
+    unexamined = 0
+    for sub in ("onnx", "vnnlib"):
+        (staging / sub).mkdir(exist_ok=True)
+    work = staging / ".instance"
+    mix = options.mix
+    walk = tqdm(list(zip(instances, names)), desc="instances", unit="inst", disable=not progress)
+    for index, (instance, name) in enumerate(walk):
+        if mix is not None and min(kept.values()) >= mix:
+            unexamined = len(instances) - index
+            break
+        built, reason = build(instance)
+        if built is None:
+            skipped.append((name, reason))
+            continue
+        if options.reference_nodes is not None:
+            status, seconds, nodes = _reference_verdict(built, options.reference_nodes)
+            if mix is not None and kept[status] >= mix:
+                unmixed.append((name, status))
+                continue
+            kept[status] += 1
+            reference[name] = (status, seconds, nodes)
+        size = _write_instance(staging, work, name, built, options)
+        written.append(name)
+        sizes[name] = size
+    if work.exists():
+        shutil.rmtree(work)
+    if not written:
+        raise _NothingWritten(
+            "instances: no seed image of the grid can be certified ("
+            + "; ".join(f"{n}: {r}" for n, r in skipped[:3])
+            + ")"
+        )
+    return _Outcome(instances, names, written, sizes, skipped, reference, unmixed, unexamined)
+
+
+def _build(backbone, seed_of, data_dir: Path, hull_seed: int, tolerance_units: str, instance):
+    """``(built, None)``: ``instance``'s proxy, hull and spec
+    (:func:`kpstudy.certify.allocation_method.build_instance`'s), or ``(None, reason)``
+    for one left out: a seed it refuses, one not certifiable at the heatmap's resolution,
+    one with nothing to verify."""
+    from kpstudy.certify.allocation_method import build_instance
+    from kpstudy.study.campaign import instance_vertices
+
+    vertices = instance_vertices(instance, data_dir, hull_seed)
+    try:
+        built = build_instance(
+            backbone,
+            vertices,
+            seed_of(instance.image_id),
+            alpha=instance.alpha,
+            kappa=instance.kappa,
+            tolerance_units=tolerance_units,
+        )
+    except ValueError as exc:  # a seed that cannot be certified: no instance
+        return None, str(exc)
+    if not built.feasible:
+        return None, _NOT_CERTIFIABLE.format(built.first_order)
+    if built.spec.n_rows == 0:
+        return None, _NOTHING_TO_VERIFY
+    return built, None
+
+
+def _reference_verdict(built, max_nodes: int) -> tuple:
+    """kpstudy's ``(status, seconds, nodes)`` on ``built``: :func:`kpstudy.verify.verify`
+    with :data:`REFERENCE_METHOD`, ``max_nodes`` and no time budget."""
+    from kpstudy.verify import verify
+
+    result = verify(
+        built.proxy,
+        built.hull,
+        built.spec,
+        method=REFERENCE_METHOD,
+        timeout=math.inf,
+        max_nodes=max_nodes,
+    )
+    return result.status, result.time, result.nodes
+
+
+def _write_instance(staging: Path, work: Path, name: str, built, options: _Options) -> tuple:
+    """Write ``built`` as ``onnx/NAME.onnx`` and ``vnnlib/NAME.vnnlib`` in ``staging``
+    (made in the scratch folder ``work``; the pair is complete once the ONNX file is
+    there); its sizes: n inputs, cells, outputs, disjuncts."""
+    from kpstudy.io import write_text_atomic
+    from kpstudy.verify.export import export_instance
+
+    if work.exists():
+        shutil.rmtree(work)
+    info = export_instance(
+        work,
+        built.proxy,
+        built.hull,
+        built.spec,
+        input_form=options.input_form,
+        dtype=DTYPES[options.dtype],
+        vnnlib_version=options.vnnlib_version,
+        property_form=options.property_form,
+    )
+    text = (work / "spec.vnnlib").read_text()
+    write_text_atomic(
+        staging / "vnnlib" / f"{name}.vnnlib", text.replace("model.onnx", f"onnx/{name}.onnx")
+    )
+    os.replace(work / "model.onnx", staging / "onnx" / f"{name}.onnx")  # the pair is complete
+    return (info["n_inputs"], built.spec.n_outputs, info["n_outputs"], info["n_disjuncts"])
+
+
+def _write_lists(staging: Path, options: _Options, outcome: _Outcome) -> None:
+    """``instances.csv`` (no header) and, with ``options.reference_nodes``,
+    ``reference.csv`` of ``outcome``'s written instances in ``staging``."""
+    from kpstudy.io import write_text_atomic
+
+    rows = [f"onnx/{n}.onnx,vnnlib/{n}.vnnlib,{_num(options.timeout)}" for n in outcome.written]
+    write_text_atomic(staging / "instances.csv", "\n".join(rows) + "\n")
+    if options.reference_nodes is not None:
+        rows = ["name,status,time,nodes,method,max_nodes"] + [
+            f"{n},{status},{seconds:.3f},{nodes},{REFERENCE_METHOD},{options.reference_nodes}"
+            for n, (status, seconds, nodes) in outcome.reference.items()
+        ]
+        write_text_atomic(staging / "reference.csv", "\n".join(rows) + "\n")
 
 
 def _readme(
@@ -404,31 +493,37 @@ def _readme(
     """The benchmark's README.md: how ``command`` made it from ``checkpoint`` and
     ``data_dir`` (their digests in ``origin``, :func:`kpstudy.study.campaign.provenance`'s)
     with ``options``, what an instance is, and the table of ``outcome``'s instances."""
+    lines = [
+        *_readme_header(command, checkpoint, data_dir, origin, options, outcome),
+        *_readme_instance(options),
+        *_readme_reference(options, outcome),
+        *_readme_mix(options, outcome),
+        *_readme_table(options, outcome),
+        *_readme_left_out(outcome),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _verdict_counts(outcome: _Outcome) -> dict:
+    """How many of ``outcome``'s reference verdicts fall in each class of :data:`VERDICTS`."""
+    return {v: sum(r[0] == v for r in outcome.reference.values()) for v in VERDICTS}
+
+
+def _readme_header(
+    command: str,
+    checkpoint: Path,
+    data_dir: Path,
+    origin: dict,
+    options: _Options,
+    outcome: _Outcome,
+) -> list[str]:
+    """README.md's title, the command, the versions, digests and options, the layout."""
     from kpstudy import __version__ as version
     from kpstudy.io import source_fingerprint
 
     code = source_fingerprint()
     versions = ", ".join(f"{p} {importlib.metadata.version(p)}" for p in ("torch", "onnx", "numpy"))
-    form = {
-        "box": "`u` in the box [0, 1]^n, mapped exactly onto the simplex inside the network "
-        "(a ReLU sorting layer, then the spacings λ₁ = u₍₁₎, λᵢ = u₍ᵢ₎ − u₍ᵢ₋₁₎): every "
-        "verifier that takes box inputs runs the exact hull",
-        "simplex": "`lam` = λ with λ ≥ 0 and the linear input constraint Σ λ ≤ 1 (only "
-        "verifiers that accept linear input constraints read it)",
-    }[options.input_form]
-    property_text = {
-        "compact": "The network ends in each verified keypoint's worst margin, the least "
-        "`y_t − y_j` over its other cells j (t: its target cell; the minimum a ReLU tree, "
-        "`min(a, b) = a − relu(a − b)`, of ONNX `Slice`, `Sub`, `Concat`, `Reshape` and "
-        "`Relu`, no `Gather`): "
-        "one output `Y_i` per verified keypoint, in keypoint order (the VNN-LIB header "
-        "lists them), and one disjunct `Y_i ≤ 0` per output, the same verdict as one "
-        "disjunct `Y_j ≥ Y_t` per competing cell (property form `full`) in a file of a few "
-        "kilobytes.",
-        "full": "The network's output `y` is the cells of all keypoints, and the violation "
-        "is one disjunct `Y_j ≥ Y_t` per other cell j of a keypoint with target t.",
-    }[options.property_form]
-    lines = [
+    return [
         "# kpstudy keypoint-proxy verification benchmark",
         "",
         "Made with",
@@ -449,6 +544,32 @@ def _readme(
         "`instances.csv` with one row `onnx/NAME.onnx,vnnlib/NAME.vnnlib,TIMEOUT` per "
         "instance (no header).",
         "",
+    ]
+
+
+def _readme_instance(options: _Options) -> list[str]:
+    """README.md's "What an instance is": the input set, the network, the property (as
+    ``options`` export them) and the names."""
+    form = {
+        "box": "`u` in the box [0, 1]^n, mapped exactly onto the simplex inside the network "
+        "(a ReLU sorting layer, then the spacings λ₁ = u₍₁₎, λᵢ = u₍ᵢ₎ − u₍ᵢ₋₁₎): every "
+        "verifier that takes box inputs runs the exact hull",
+        "simplex": "`lam` = λ with λ ≥ 0 and the linear input constraint Σ λ ≤ 1 (only "
+        "verifiers that accept linear input constraints read it)",
+    }[options.input_form]
+    property_text = {
+        "compact": "The network ends in each verified keypoint's worst margin, the least "
+        "`y_t − y_j` over its other cells j (t: its target cell; the minimum a ReLU tree, "
+        "`min(a, b) = a − relu(a − b)`, of ONNX `Slice`, `Sub`, `Concat`, `Reshape` and "
+        "`Relu`, no `Gather`): "
+        "one output `Y_i` per verified keypoint, in keypoint order (the VNN-LIB header "
+        "lists them), and one disjunct `Y_i ≤ 0` per output, the same verdict as one "
+        "disjunct `Y_j ≥ Y_t` per competing cell (property form `full`) in a file of a few "
+        "kilobytes.",
+        "full": "The network's output `y` is the cells of all keypoints, and the violation "
+        "is one disjunct `Y_j ≥ Y_t` per other cell j of a keypoint with target t.",
+    }[options.property_form]
+    return [
         "## What an instance is",
         "",
         "One seed image of the dataset's test split and `m` perturbed images of it (the "
@@ -482,49 +603,65 @@ def _readme(
         "images overlapping the airplane or not) or `lLEVEL` (brightness b, contrast c).",
         "",
     ]
-    if options.reference_nodes is not None:
-        counts = {v: sum(r[0] == v for r in outcome.reference.values()) for v in VERDICTS}
-        lines += [
-            "## Reference verdicts",
-            "",
-            "`reference.csv` (`name,status,time,nodes,method,max_nodes`) holds kpstudy's own "
-            f"verdict on each instance: `kpstudy.verify.verify`, method `{REFERENCE_METHOD}`, "
-            f"a budget of {options.reference_nodes} branch-and-bound nodes and no time budget "
-            "(the verdict does not depend on the machine; the seconds are this machine's), on the "
-            "float32 torch proxy. `holds` is `unsat`, `violated` is `sat`, `unknown` means "
-            "the budget ran out: a hard case. Counts: "
-            + ", ".join(f"{counts[v]} {v}" for v in VERDICTS)
-            + ".",
-            "",
-        ]
-    if options.mix is not None:
-        lines += [
-            "Selection (`mix` = " + str(options.mix) + "): the grid was walked in order and an "
-            "instance kept only while its verdict's class (holds, violated, unknown) had "
-            f"fewer than {options.mix} kept instances; the walk stopped once every class had "
-            f"{options.mix}. "
-            + (
-                f"Left out for a full class: {len(outcome.unmixed)} (listed below)"
-                if outcome.unmixed
-                else "None was left out for a full class"
-            )
-            + (
-                f", and the grid's last {outcome.unexamined} were never built."
-                if outcome.unexamined
-                else "; the whole grid was examined."
-            )
-            + "".join(
-                f" No `{v}` instance was found: the class is empty."
-                for v in VERDICTS
-                if not counts[v]
-            ),
-            "",
-        ]
+
+
+def _readme_reference(options: _Options, outcome: _Outcome) -> list[str]:
+    """README.md's "Reference verdicts" (none without ``options.reference_nodes``): how
+    reference.csv was decided and its counts."""
+    if options.reference_nodes is None:
+        return []
+    counts = _verdict_counts(outcome)
+    return [
+        "## Reference verdicts",
+        "",
+        "`reference.csv` (`name,status,time,nodes,method,max_nodes`) holds kpstudy's own "
+        f"verdict on each instance: `kpstudy.verify.verify`, method `{REFERENCE_METHOD}`, "
+        f"a budget of {options.reference_nodes} branch-and-bound nodes and no time budget "
+        "(the verdict does not depend on the machine; the seconds are this machine's), on the "
+        "float32 torch proxy. `holds` is `unsat`, `violated` is `sat`, `unknown` means "
+        "the budget ran out: a hard case. Counts: "
+        + ", ".join(f"{counts[v]} {v}" for v in VERDICTS)
+        + ".",
+        "",
+    ]
+
+
+def _readme_mix(options: _Options, outcome: _Outcome) -> list[str]:
+    """README.md's paragraph on the ``mix`` selection (none without ``options.mix``):
+    the rule, what it left out or never built, the classes it found empty."""
+    if options.mix is None:
+        return []
+    counts = _verdict_counts(outcome)
+    return [
+        "Selection (`mix` = " + str(options.mix) + "): the grid was walked in order and an "
+        "instance kept only while its verdict's class (holds, violated, unknown) had "
+        f"fewer than {options.mix} kept instances; the walk stopped once every class had "
+        f"{options.mix}. "
+        + (
+            f"Left out for a full class: {len(outcome.unmixed)} (listed below)"
+            if outcome.unmixed
+            else "None was left out for a full class"
+        )
+        + (
+            f", and the grid's last {outcome.unexamined} were never built."
+            if outcome.unexamined
+            else "; the whole grid was examined."
+        )
+        + "".join(
+            f" No `{v}` instance was found: the class is empty." for v in VERDICTS if not counts[v]
+        ),
+        "",
+    ]
+
+
+def _readme_table(options: _Options, outcome: _Outcome) -> list[str]:
+    """README.md's "Instances": a row per written instance (its grid point, sizes and,
+    with ``options.reference_nodes``, kpstudy's verdict and nodes)."""
     header = "| name | kind | image | m | overlapping | level | α | κ | n | cells | outputs |"
     header += " disjuncts |"
     if options.reference_nodes is not None:
         header += " kpstudy | nodes |"
-    lines += ["## Instances", "", header, "|---" * header.count(" | ") + "|---|"]
+    lines = ["## Instances", "", header, "|---" * header.count(" | ") + "|---|"]
     for instance, name in zip(outcome.instances, outcome.names):
         if name not in outcome.sizes:
             continue
@@ -542,10 +679,17 @@ def _readme(
         if options.reference_nodes is not None:
             cells += [outcome.reference[name][0], outcome.reference[name][2]]
         lines.append("| " + " | ".join(map(str, cells)) + " |")
+    return lines
+
+
+def _readme_left_out(outcome: _Outcome) -> list[str]:
+    """README.md's "Left out" (the seeds that cannot be certified) and "Not kept by the
+    mix" (the instances of a full class), each only when there are some."""
+    lines = []
     if outcome.skipped:
         lines += ["", "## Left out", "", "Seed images that cannot be certified:", ""]
         lines += [f"- {name}: {reason}" for name, reason in outcome.skipped]
     if outcome.unmixed:
         lines += ["", "## Not kept by the mix", "", "Their class was full (kpstudy's verdict):"]
         lines += [""] + [f"- {name}: {status}" for name, status in outcome.unmixed]
-    return "\n".join(lines) + "\n"
+    return lines
