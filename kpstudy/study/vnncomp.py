@@ -69,8 +69,9 @@ class _NothingWritten(Exception):
 
 @dataclass(frozen=True)
 class _Options:
-    """The checked export options of :func:`export_benchmark` (``timeout`` in float
-    seconds), as its README and its staging config record them."""
+    """The export options of :func:`export_benchmark`, checked on construction (one line
+    naming the first one wrong; ``timeout`` becomes float seconds), as its README and its
+    staging config record them."""
 
     timeout: float
     input_form: str
@@ -80,6 +81,25 @@ class _Options:
     tolerance_units: str
     reference_nodes: int | None
     mix: int | None
+
+    def __post_init__(self) -> None:  # in the order of export_benchmark's signature
+        from kpstudy import _checks
+        from kpstudy.pose.allocation import TOLERANCE_UNITS
+        from kpstudy.verify.export import INPUT_FORMS, PROPERTY_FORMS, VNNLIB_VERSIONS
+
+        timeout = _checks.seconds(self.timeout, "timeout")
+        if not math.isfinite(timeout):  # written into instances.csv: no cap is not a timeout
+            raise ValueError(f"timeout: expected finite seconds > 0, got {timeout!r}")
+        object.__setattr__(self, "timeout", timeout)
+        _checks.choice(self.input_form, "input_form", INPUT_FORMS)
+        _checks.choice(self.vnnlib_version, "vnnlib_version", VNNLIB_VERSIONS)
+        _checks.choice(self.dtype, "dtype", DTYPES)
+        _checks.choice(self.property_form, "property_form", PROPERTY_FORMS)
+        _checks.choice(self.tolerance_units, "tolerance_units", TOLERANCE_UNITS)
+        _checks.integer(self.reference_nodes, "reference_nodes", minimum=1, optional=True)
+        _checks.integer(self.mix, "mix", minimum=1, optional=True)
+        if self.mix is not None and self.reference_nodes is None:
+            raise ValueError("mix: selects by kpstudy's verdicts; give reference_nodes too")
 
 
 @dataclass(frozen=True)
@@ -219,7 +239,7 @@ def export_benchmark(
         is written.
     """
     checkpoint, data_dir = _check_sources(checkpoint, data_dir)
-    options = _check_options(
+    options = _Options(
         timeout=timeout,
         input_form=input_form,
         vnnlib_version=vnnlib_version,
@@ -254,47 +274,6 @@ def _check_sources(checkpoint, data_dir) -> tuple[Path, Path]:
     if not (data_dir / "annotations.json").is_file():
         raise FileNotFoundError(f"data: no data_gen dataset at {data_dir}")
     return checkpoint, data_dir
-
-
-def _check_options(
-    *,
-    timeout,
-    input_form,
-    vnnlib_version,
-    dtype,
-    property_form,
-    tolerance_units,
-    reference_nodes,
-    mix,
-) -> _Options:
-    """The export options of :func:`export_benchmark`, checked in the order of its
-    signature (one line naming the first one wrong)."""
-    from kpstudy import _checks
-    from kpstudy.pose.allocation import TOLERANCE_UNITS
-    from kpstudy.verify.export import INPUT_FORMS, PROPERTY_FORMS, VNNLIB_VERSIONS
-
-    timeout = _checks.seconds(timeout, "timeout")
-    if not math.isfinite(timeout):  # written into instances.csv: no cap is not a timeout
-        raise ValueError(f"timeout: expected finite seconds > 0, got {timeout!r}")
-    _checks.choice(input_form, "input_form", INPUT_FORMS)
-    _checks.choice(vnnlib_version, "vnnlib_version", VNNLIB_VERSIONS)
-    _checks.choice(dtype, "dtype", DTYPES)
-    _checks.choice(property_form, "property_form", PROPERTY_FORMS)
-    _checks.choice(tolerance_units, "tolerance_units", TOLERANCE_UNITS)
-    _checks.integer(reference_nodes, "reference_nodes", minimum=1, optional=True)
-    _checks.integer(mix, "mix", minimum=1, optional=True)
-    if mix is not None and reference_nodes is None:
-        raise ValueError("mix: selects by kpstudy's verdicts; give reference_nodes too")
-    return _Options(
-        timeout,
-        input_form,
-        vnnlib_version,
-        dtype,
-        property_form,
-        tolerance_units,
-        reference_nodes,
-        mix,
-    )
 
 
 def _check_instances(instances) -> list:
