@@ -44,6 +44,7 @@ __all__ = [
     "trend_readings",
     "run_cost",
     "cost_markdown",
+    "budget_markdown",
     "write_report",
 ]
 
@@ -157,6 +158,8 @@ def write_report(out, profile: dict | None = None) -> Path:
                 trends = trend_markdown(trend_readings(name, table))
                 lines += ["**Reading.**", "", *[f"- {t}" for t in text], ""]
                 lines += [trends, ""] if trends else []
+            if name in COMPARED:
+                lines += budget_markdown(tables / f"{name}_records.csv")
             lines += error_markdown(name, errors.get(name))
         for picture in pictures:
             if picture in COMPARED and picture in names:
@@ -207,6 +210,38 @@ def run_cost(out) -> pd.DataFrame:
     return pd.DataFrame(
         rows, columns=["table", "seeds", "instances", "hours", "median_s", "paper_hours"]
     )
+
+
+def budget_markdown(records_csv) -> list[str]:
+    """The report's lines on how much each search had decided by each node count
+    (:func:`kpstudy.study.tables.decided_by_nodes` of a table's records), for choosing
+    node budgets; none without the records or node counts."""
+    from kpstudy.study.tables import decided_by_nodes
+
+    path = Path(records_csv)
+    if not path.is_file():
+        return []
+    shares = decided_by_nodes(pd.read_csv(path))
+    if shares.empty:
+        return []
+    marks = [c for c in shares.columns if c.startswith("≤ ")]
+    lines = [
+        "**Decided by node count.** The share of instances each search had decided (holds "
+        "or violated) within N nodes, as this run's searches went: what a smaller node "
+        "budget decides at least, and what the run's own budget gained over it.",
+        "",
+        "| model | reading | method | instances | " + " | ".join(marks) + " | at its budget |",
+        "|---" * (len(marks) + 5) + "|",
+    ]
+    for row in shares.to_dict("records"):
+        cells = [row["model"], row["tolerance_units"], row["method"], str(row["instances"])]
+        cells += [_share(row[mark]) for mark in marks] + [_share(row["decided"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def _share(value) -> str:
+    return "–" if pd.isna(value) else f"{value:.0%}"
 
 
 def cost_markdown(cost: pd.DataFrame) -> list[str]:

@@ -66,10 +66,12 @@ from kpstudy.pose.geometry import POSE_AXES, tolerance
 from kpstudy.study.trends import paper_interval, rate_interval
 
 __all__ = [
+    "NODE_MARKS",
     "PAPER_T_GLOBAL",
     "PAPER_T_LOCAL",
     "PAPER_T_PROB",
     "PAPER_T_RESNET",
+    "decided_by_nodes",
     "instance_label",
     "plot_pose_bounds",
     "pose_bound_ratios",
@@ -513,6 +515,66 @@ def _with_paper(out: pd.DataFrame, paper: dict, key) -> pd.DataFrame:
     out["paper_time_mean"] = [v[0] for v in values]
     out["paper_time_std"] = [v[1] for v in values]
     return out
+
+
+#: The node counts at which :func:`decided_by_nodes` reads how much a run had decided.
+NODE_MARKS = (0, 1, 4, 16, 64, 256, 1024, 4096)
+#: Per method of the records, its verdict and node count columns.
+_SEARCHES = (("alloc", "status", "nodes"), ("pb", "pb_status", "pb_nodes"))
+
+
+def decided_by_nodes(records: pd.DataFrame) -> pd.DataFrame:
+    """How much of a verification table each search had decided by a given node count.
+
+    For each model, reading and method (``alloc``: ``status``/``nodes``; ``pb``:
+    ``pb_status``/``pb_nodes``), the share of its instances decided (``holds`` or
+    ``violated``) within ``≤ N`` nodes, for each ``N`` of :data:`NODE_MARKS` up to the
+    first that covers the most nodes any of them used. It reads this run's searches as
+    they went: what a smaller node budget would have decided at least (the search is the
+    same up to the budget; ``pose_bound_refine_nodes`` could add more), what a larger one
+    gained.
+
+    Returns
+    -------
+    DataFrame
+        ``model``, ``tolerance_units``, ``method``, ``instances``, ``decided`` (the share at
+        the run's own budgets) and one column ``≤ N`` per mark: shares in [0, 1]. No row for
+        a method without records (``pb`` under a reading that did not run it) or without
+        node counts (records from before they were stored, errors only).
+
+    Examples
+    --------
+    >>> records = pd.DataFrame({"model": "cnn", "tolerance_units": "heatmap",
+    ...                         "status": ["holds", "violated", "unknown", "holds"],
+    ...                         "nodes": [3, 0, 16, 16]})
+    >>> decided_by_nodes(records).iloc[0].to_dict()  # doctest: +NORMALIZE_WHITESPACE
+    {'model': 'cnn', 'tolerance_units': 'heatmap', 'method': 'alloc', 'instances': 4,
+     'decided': 0.75, '≤ 0': 0.25, '≤ 1': 0.25, '≤ 4': 0.5, '≤ 16': 0.75}
+    """
+    rows = []
+    for (model, units), part in records.groupby(["model", "tolerance_units"], sort=False):
+        for method, status, nodes in _SEARCHES:
+            if status not in part or nodes not in part:
+                continue
+            ran = part[part[status].isin(["holds", "violated", "unknown"])]
+            used = pd.to_numeric(ran[nodes], errors="coerce")
+            if ran.empty or used.isna().all():
+                continue
+            decided = ran[status].isin(["holds", "violated"]).to_numpy()
+            row = dict(
+                model=model,
+                tolerance_units=units,
+                method=method,
+                instances=len(ran),
+                decided=float(decided.mean()),
+            )
+            most = used.max()
+            for mark in NODE_MARKS:
+                row[f"≤ {mark}"] = float((decided & (used <= mark).to_numpy()).mean())
+                if mark >= most:
+                    break
+            rows.append(row)
+    return pd.DataFrame(rows)
 
 
 def pose_bound_ratios(records: pd.DataFrame, column: str = "pb_bound") -> pd.DataFrame:

@@ -420,3 +420,18 @@ def test_the_report_opens_with_each_tables_cost_and_the_paper_profiles(tmp_path)
     assert "| t_global | 3 | 5 | 1.00 | 720 | 66.7 |" in text
     assert "--profile paper --scheduler" in text
     assert report.cost_markdown(report.run_cost(tmp_path / "empty")) == []
+
+
+def test_the_report_shows_what_each_search_had_decided_by_node_count(tmp_path):
+    records = local_records()
+    records["nodes"] = np.where(records.status == "holds", 3, 0)
+    records["pb_nodes"] = np.where(records.pb_status == "holds", 40, 768)
+    out = _campaign_results(tmp_path, records)
+    text = report.write_report(out).read_text()
+    header = "| model | reading | method | instances | ≤ 0 | ≤ 1 | ≤ 4 | ≤ 16 | ≤ 64 | ≤ 256 |"
+    assert header + " ≤ 1024 | at its budget |" in text
+    # 'heatmap': holds at α = 1.5 (3 nodes), violated at the seed elsewhere (0 nodes)
+    assert "| cnn | heatmap | alloc | 16 | 50% | 50% | 100% | – | – | – | – | 100% |" in text
+    # pb: holds where not overlapping (40 nodes), unknown at its 768 nodes where overlapping
+    assert "| cnn | heatmap | pb | 16 | 0% | 0% | 0% | 0% | 50% | 50% | 50% | 50% |" in text
+    assert report.budget_markdown(out / "tables" / "missing.csv") == []

@@ -474,3 +474,29 @@ def test_the_pose_bound_decided_fraction_counts_its_own_records_only():
     records.loc[4, "pb_status"] = None  # an instance the pose-bound method did not run
     row = tables.t_global(records).iloc[0]
     assert row.pb_decided == pytest.approx(3 / 4) and row.pb_unknown == 1
+
+
+def test_decided_by_nodes_reads_each_search_at_each_node_count():
+    records = pd.DataFrame(
+        {
+            "model": "cnn",
+            "tolerance_units": ["heatmap"] * 5 + ["paper"] * 2,
+            "status": ["violated", "holds", "unknown", "holds", "error", "holds", "unknown"],
+            "nodes": [0, 5, 70, 64, None, 1, 2],
+            "pb_status": ["holds", "holds", "violated", "unknown", None, None, None],
+            "pb_nodes": [17, 300, 0, 768, None, None, None],
+        }
+    )
+    shares = tables.decided_by_nodes(records).set_index(["tolerance_units", "method"])
+    assert list(shares.index) == [("heatmap", "alloc"), ("heatmap", "pb"), ("paper", "alloc")]
+    alloc = shares.loc[("heatmap", "alloc")]  # the error is no search: 4 instances
+    assert alloc["instances"] == 4 and alloc["decided"] == 0.75
+    assert [alloc[f"≤ {n}"] for n in (0, 1, 4, 16, 64)] == [0.25, 0.25, 0.25, 0.5, 0.75]
+    assert alloc["≤ 256"] == 0.75 and np.isnan(alloc["≤ 1024"])  # 256 covers its 70 nodes
+    assert "≤ 4096" not in shares.columns  # 1024 covers the most nodes any search used
+    pb = shares.loc[("heatmap", "pb")]
+    assert [pb[f"≤ {n}"] for n in (0, 16, 64, 256)] == [0.25, 0.25, 0.5, 0.5]
+    assert pb["≤ 1024"] == pb["decided"] == 0.75
+    paper = shares.loc[("paper", "alloc")]
+    assert paper["instances"] == 2 and paper["≤ 0"] == 0 and paper["≤ 1"] == 0.5
+    assert tables.decided_by_nodes(records.drop(columns=["nodes", "pb_nodes"])).empty
