@@ -113,9 +113,13 @@ def main(argv=None) -> int:
     )
     pub.add_argument("run", help="a results folder, e.g. results/standard")
     pub.add_argument("dest", help="the reference folder, e.g. docs/results/standard (replaced)")
-    pub.add_argument("--commit", required=True, help="git commit of the code that ran")
     pub.add_argument(
-        "--command", dest="run_command", required=True, help="the command line that ran it"
+        "--commit", help="git commit of the code that ran (default: the run's runs.jsonl)"
+    )
+    pub.add_argument(
+        "--command",
+        dest="run_command",
+        help="the command line that ran it (default: the run's runs.jsonl)",
     )
     tr = sub.add_parser("train", help="train a heatmap backbone on a data_gen dataset")
     tr.add_argument("--data", required=True, help="dataset folder (python -m data_gen dataset)")
@@ -237,6 +241,7 @@ def main(argv=None) -> int:
                 notebooks=args.notebooks,
                 scheduler=args.scheduler,
                 retrain_friendly=args.retrain_friendly,
+                command=_command_line(argv),
             )
             print(f"results written to {out}")
         elif args.command == "compare":
@@ -383,6 +388,15 @@ def _campaign(args) -> None:
         )
 
 
+def _command_line(argv) -> str:
+    """This invocation as a command line: ``python -m kpstudy ARGS``."""
+    import shlex
+
+    return shlex.join(
+        ["python", "-m", "kpstudy", *map(str, sys.argv[1:] if argv is None else argv)]
+    )
+
+
 def _grid(args) -> list:
     """The instances ``--data``, ``--kind`` and the grid options name
     (:func:`kpstudy.study.campaign.grid`)."""
@@ -403,8 +417,6 @@ def _export_benchmark(args, argv) -> None:
     """Export the grid's instances; bad input (a missing checkpoint, an unknown kind, an
     ``--out`` that is a file or a non-empty folder, …) is refused before anything is
     written."""
-    import shlex
-
     from kpstudy.study.vnncomp import export_benchmark
 
     if not Path(args.checkpoint).is_file():
@@ -425,7 +437,7 @@ def _export_benchmark(args, argv) -> None:
         tolerance_units=args.tolerance_units,
         reference_nodes=args.reference_nodes,
         mix=args.mix,
-        command=shlex.join(["python", "-m", "kpstudy", *map(str, argv)]),
+        command=_command_line(argv),
     )
     for name, reason in done["skipped"]:
         print(f"kpstudy export-benchmark: left out {name}: {reason}", file=sys.stderr)

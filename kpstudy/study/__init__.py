@@ -32,7 +32,15 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "summarise_indicators",
             "symmetry_indicators",
         ),
-        "reference": ("notebook_seconds", "publish", "stamp_markdown"),
+        "reference": (
+            "RUN_LOG",
+            "code_commit",
+            "log_stage",
+            "notebook_seconds",
+            "publish",
+            "run_log",
+            "stamp_markdown",
+        ),
         "report": None,  # its __all__
         "reproduction": (
             "PROFILES",

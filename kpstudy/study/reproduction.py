@@ -38,6 +38,7 @@ from pathlib import Path
 
 from kpstudy import _checks
 from kpstudy.io import source_fingerprint, write_bytes_atomic, write_text_atomic
+from kpstudy.study.reference import log_stage
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 #: The stages of :func:`reproduce`, in the order they run.
@@ -354,13 +355,17 @@ def reproduce(
     scheduler: str | None = None,
     progress: bool = True,
     retrain_friendly: bool = False,
+    command: str | None = None,
 ) -> Path:
     """Run ``stages`` of the profile and return its results folder ``out_root/<name>``
     (``notebooks``: names of the notebooks stage's notebooks to run, e.g. ``['06_local']``,
     default all; ``retrain_friendly``: train the verification-friendly CNN even where the
-    shipped checkpoint fits). When the notebooks or the report ran and a campaign's records
-    there hold instances that ended ``'error'``, every stage still runs; then they are
-    printed and :class:`kpstudy.study.campaign.InstanceErrors` is raised with their count
+    shipped checkpoint fits). Each stage, finished or interrupted, adds its seconds, the
+    commit and ``command`` (the command line, where there is one) to the folder's
+    ``runs.jsonl`` (:func:`kpstudy.study.reference.log_stage`). When the notebooks or the
+    report ran and a campaign's records there hold instances that ended ``'error'``, every
+    stage still runs; then they are printed and
+    :class:`kpstudy.study.campaign.InstanceErrors` is raised with their count
     (:func:`campaign_errors`)."""
     prof = profile(prof) if isinstance(prof, str) else prof
     unknown = [s for s in stages if s not in STAGES]
@@ -376,18 +381,23 @@ def reproduce(
     for stage in STAGES:
         if stage not in stages:
             continue
-        start = time.perf_counter()
-        if stage == "data":
-            data(prof, out, progress=progress)
-        elif stage == "train":
-            train_models(prof, out, progress=progress, retrain_friendly=retrain_friendly)
-        elif stage == "notebooks":
-            run_notebooks(prof, out, scheduler=scheduler, progress=progress, only=notebooks)
-        else:
-            from kpstudy.study.report import write_report
+        start, finished = time.perf_counter(), False
+        try:
+            if stage == "data":
+                data(prof, out, progress=progress)
+            elif stage == "train":
+                train_models(prof, out, progress=progress, retrain_friendly=retrain_friendly)
+            elif stage == "notebooks":
+                run_notebooks(prof, out, scheduler=scheduler, progress=progress, only=notebooks)
+            else:
+                from kpstudy.study.report import write_report
 
-            write_report(out, asdict(prof))
-        timings[stage] = round(time.perf_counter() - start, 1)
+                write_report(out, asdict(prof))
+            finished = True
+        finally:
+            seconds = time.perf_counter() - start
+            log_stage(out, stage, seconds, finished=finished, command=command)
+        timings[stage] = round(seconds, 1)
         print(f"[reproduce] {stage}: {timings[stage]} s", flush=True)
     if {"notebooks", "report"} & set(stages):
         campaign_errors(out)

@@ -1,13 +1,14 @@
 """kpstudy.study.reference: a run copied into a stamped reference folder."""
 
 import json
+import re
 import subprocess
 import sys
 
 import pytest
 
-from kpstudy.study.reference import notebook_seconds, publish
-from kpstudy.study.reproduction import compare_results
+from kpstudy.study.reference import log_stage, notebook_seconds, publish, run_log
+from kpstudy.study.reproduction import compare_results, profile, reproduce
 
 
 def _run(root):
@@ -82,3 +83,30 @@ def test_publish_cli_exits_2_with_one_line(tmp_path):
         [*cmd, "--commit", "7db18cb", "--command", "x"], capture_output=True, text=True
     )
     assert done.returncode == 0 and (tmp_path / "ref" / "STAMP.md").is_file()
+
+
+def test_each_stage_of_reproduce_is_logged_with_its_commit_and_command(tmp_path):
+    out = reproduce(profile("quick"), tmp_path, stages=["report"], command="kpstudy reproduce")
+    (entry,) = run_log(out)
+    assert entry["stage"] == "report" and entry["finished"] and entry["seconds"] >= 0
+    assert entry["command"] == "kpstudy reproduce" and len(entry["code"]) == 12
+    assert entry["commit"] is None or re.fullmatch(r"[0-9a-f]{40}(\+changes)?", entry["commit"])
+    log_stage(out, "notebooks", 7200.4, finished=False, command="kpstudy reproduce")
+    assert [e["stage"] for e in run_log(out)] == ["report", "notebooks"]
+    assert not run_log(out)[1]["finished"]
+
+
+def test_publish_takes_the_commit_and_command_the_run_recorded(tmp_path, monkeypatch):
+    run = _run(tmp_path / "run")
+    monkeypatch.setattr("kpstudy.study.reference.code_commit", lambda: "a" * 40)
+    for stage, seconds in (("notebooks", 3600.0), ("notebooks", 1800.0), ("report", 2.0)):
+        log_stage(run, stage, seconds, finished=stage == "report", command="make reproduce")
+    stamp = (publish(run, tmp_path / "ref") / "STAMP.md").read_text()
+    assert f"- commit: `{'a' * 40}`" in stamp and "- command: `make reproduce`" in stamp
+    assert "| notebooks | 5400 | 2 | 0 |" in stamp and "| total | 5402 |" in stamp
+    assert not (tmp_path / "ref" / "runs.jsonl").exists()
+    monkeypatch.setattr("kpstudy.study.reference.code_commit", lambda: "b" * 40 + "+changes")
+    log_stage(run, "report", 1.0, finished=True, command="make reproduce")
+    with pytest.raises(ValueError, match="commit: expected 7 to 40 hex digits"):
+        publish(run, tmp_path / "ref2")  # two commits recorded, one of them with changes
+    assert publish(run, tmp_path / "ref2", commit="c" * 7).is_dir()
