@@ -12,20 +12,17 @@ budget. Where the environment is missing the module is skipped.
 
 from __future__ import annotations
 
-import copy
 import csv
 import json
-import re
 import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-import torch
 
+from benchmarks.common import check_counterexample, read_answer
 from kpstudy.verify import verify
-from kpstudy.verify.export import export_instance, point_of_input
+from kpstudy.verify.export import export_instance
 from tests.helpers.tiny_proxies import make_instance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,9 +48,6 @@ SECONDS = 30
 ITERATIONS = 500
 #: Seconds before a NeuralSAT process counts as hung (it ran at most 40 s here).
 HANG = 600
-#: Counterexamples' float64 worst margins may exceed 0 by this much, times 1 + max |y(X0)|:
-#: NeuralSAT checks its points in float32.
-TOLERANCE = 1e-5
 
 
 def neuralsat(onnx_path, vnnlib_path, folder: Path):
@@ -73,24 +67,18 @@ def neuralsat(onnx_path, vnnlib_path, folder: Path):
     seconds = time.perf_counter() - start
     tail = (done.stdout + done.stderr).strip().splitlines()[-15:]
     assert done.returncode == 0 and result.is_file(), (onnx_path, done.returncode, tail)
-    status, *lines = result.read_text().splitlines()
-    values = {int(k): float(v) for k, v in re.findall(r"\(X_(\d+) (\S+?)\)", "\n".join(lines))}
-    x = np.array([values[k] for k in sorted(values)]) if values else None
-    assert (status == "sat") == (x is not None), (onnx_path, status, lines[:3])
+    status, x = read_answer(result)
+    assert (status == "sat") == (x is not None), (onnx_path, status, x)
     return status, x, seconds
 
 
-def check_counterexample(model, hull, spec, x):
+def assert_counterexample(model, hull, spec, x):
     """``x`` (a ``sat`` answer's box input) is a point of the hull whose float64 worst
-    margin on ``model`` is ≤ 0, up to :data:`TOLERANCE`; returns that margin."""
-    lam = point_of_input(hull, x[None], "box")
-    assert hull.contains_lambda(lam, tol=1e-6).all(), lam
-    double = copy.deepcopy(model).double()
-    with torch.no_grad():
-        scale = 1 + double(hull.vertices[:1].double()).abs().max().item()
-        margin = spec.margins(double(hull.image(lam, dtype=torch.float64))).min().item()
-    assert margin <= TOLERANCE * scale, (margin, scale)
-    return margin
+    margin on ``model`` is ≤ 0, up to benchmarks.common's tolerance
+    (:func:`benchmarks.common.check_counterexample`); returns that margin."""
+    found = check_counterexample(model, hull, spec, x, "box")
+    assert found["inside"] and found["violates"], (x, found)
+    return found["margin"]
 
 
 @pytest.mark.parametrize("form", ["compact", "full"])
@@ -112,7 +100,7 @@ def test_neuralsat_agrees_with_verify(tmp_path, form):
         if status in ("sat", "unsat") and ours.status != "unknown":
             assert {"sat": "violated", "unsat": "holds"}[status] == ours.status, rows[-1]
         if status == "sat":
-            check_counterexample(model, hull, spec, x)
+            assert_counterexample(model, hull, spec, x)
     decided = [r for r in rows if r[3] in ("sat", "unsat") and r[2] != "unknown"]
     holds = sum(r[2] == "holds" for r in decided)
     print(
@@ -154,4 +142,4 @@ def test_neuralsat_reads_the_study_benchmark(study, tmp_path):
         if status == "sat":
             vertices = instance_vertices(instance, data)
             built = build_instance(backbone, vertices, seed_of(instance.image_id))
-            check_counterexample(built.proxy, built.hull, built.spec, x)
+            assert_counterexample(built.proxy, built.hull, built.spec, x)
