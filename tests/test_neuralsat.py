@@ -18,11 +18,16 @@ import subprocess
 import time
 from pathlib import Path
 
+import onnx
 import pytest
+import torch
+from torch import nn
 
 from benchmarks.common import check_counterexample, read_answer
-from kpstudy.verify import verify
+from kpstudy.models.pooling import build_cell_pool
+from kpstudy.verify import ConvexHull, verify
 from kpstudy.verify.export import export_instance
+from kpstudy.verify.spec import ArgmaxSpec
 from tests.helpers.tiny_proxies import make_instance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,9 +119,57 @@ def test_neuralsat_agrees_with_verify(tmp_path, form):
     assert holds >= 3 and len(decided) - holds >= 3, rows  # both answers are exercised
 
 
+class CellPoolProxy(nn.Module):
+    """Conv(1→2) → ReLU → channel 0 pooled by the proxy's cell pool (zeros padded
+    asymmetrically along both axes: left 0, right 2, top 3, bottom 1, cells 5 × 3), then a
+    ``Linear`` (identity weights) whose bias raises the keypoint's cell so that ``x0`` has
+    margin ``seed_margin``. Input ``(B, 1, 6, 7)``, output ``(B, 6)``."""
+
+    def __init__(self, x0: torch.Tensor, seed_margin: float = 0.05) -> None:
+        super().__init__()
+        torch.manual_seed(0)
+        self.conv = nn.Conv2d(1, 2, 3, padding=1)
+        self.pool, target = build_cell_pool((1, 4), (1, 2), (6, 7))
+        cells = self.pool.n_v * self.pool.n_h
+        self.spec = ArgmaxSpec([cells], [target])
+        self.bias = nn.Linear(cells, cells)
+        with torch.no_grad():
+            self.bias.weight.copy_(torch.eye(cells))
+            self.bias.bias.zero_()
+            y0 = self(x0)[0]
+            others = torch.cat([y0[:target], y0[target + 1 :]])
+            self.bias.bias[target] = others.max() - y0[target] + seed_margin
+        self.eval()
+
+    def forward(self, x):
+        return self.bias(self.pool(torch.relu(self.conv(x))[:, :1]).flatten(1))
+
+
+def test_neuralsat_proves_through_the_cell_pool(tmp_path):
+    """An instance that needs the proxy's cell pool (:class:`CellPoolProxy`, its zero
+    padding exported as a one-hot depthwise ``Conv``: NeuralSAT's auto_LiRPA failed on the
+    ``Pad`` it replaced) and that ``verify`` proves: NeuralSAT proves it too (``unsat``),
+    so its bounds pass through the padding."""
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(1, 1, 6, 7, generator=g)
+    model = CellPoolProxy(x0)
+    assert model.pool.pad == (0, 2, 3, 1)
+    hull = ConvexHull(
+        x0 + 0.05 * torch.cat([torch.zeros_like(x0), torch.randn(2, *x0.shape[1:], generator=g)])
+    )
+    ours = verify(model, hull, model.spec, timeout=600, max_nodes=1000)
+    info = export_instance(tmp_path, model, hull, model.spec)
+    ops = [n.op_type for n in onnx.load(info["onnx"]).graph.node]
+    assert "Pad" not in ops and "AveragePool" in ops
+    status, _, seconds = neuralsat(info["onnx"], info["vnnlib"], tmp_path)
+    print(f"\nNeuralSAT through the cell pool: {status} in {seconds:.1f} s; verify {ours.status}")
+    assert (ours.status, status) == ("holds", "unsat")
+
+
 def test_neuralsat_reads_the_study_benchmark(study, tmp_path):
     """The tiny study's exported benchmark (the trained CNN's proxy: cell pooling with
-    ``Pad``, ``AveragePool`` and ``Slice``, then the compact worst-margin tree; the
+    zero padding as a one-hot ``Conv``, ``AveragePool`` and ``Slice``, then the compact
+    worst-margin tree; the
     ``study`` fixture of tests/conftest.py): NeuralSAT decides every instance as
     reference.csv (kpstudy's verdict) has it, and each counterexample is one for the proxy
     in float64."""

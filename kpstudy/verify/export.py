@@ -27,7 +27,11 @@ NeuralSAT, NNV, PyRAT, Marabou, …) can run the very instance this package chec
     NeuralSAT use, among them): batch norms folded into the convolutions before them (or
     a per-channel ``Mul``/``Add`` where none is), so no ``BatchNormalization`` node;
     static shapes on every value, batch 1 (no symbolic dimension); every node input
-    named (the pooling's ``Pad`` has its zero as an input); constants folded; it passes
+    named; constants folded; zero padding (``F.pad``, the cell pool's) is no ``Pad`` node
+    but a depthwise ``Conv`` with a one-hot kernel and symmetric ``pads``
+    (:func:`_pad_as_conv`; NeuralSAT 0.2.17's auto_LiRPA cannot bound a ``Pad``, and
+    onnx2pytorch turns a ``Conv``'s or ``AveragePool``'s asymmetric ``pads`` into a wrong
+    padding), a ``Pad`` of another value or mode stays one; it passes
     ``onnx.checker.check_model(full_check=True)`` and strict shape inference.
 ``spec.vnnlib``
     The input set and the *violation* of the :class:`~kpstudy.verify.spec.ArgmaxSpec`
@@ -601,14 +605,15 @@ def _fold_batch_norms(module: nn.Module) -> nn.Module:
 
 
 def _finish_graph(path: str) -> None:
-    """Fold constants and fix every value's shape in the ONNX file ``path``, in place.
+    """Fold constants, replace zero padding by convolutions and fix every value's shape in
+    the ONNX file ``path``, in place.
 
     A node that depends only on constants becomes an initializer: the TorchScript exporter
     leaves ``F.pad``'s pads as a Constant/Slice/Concat/Transpose chain (its reversing
-    Slice stops torch's own folding), and verifiers' importers want a constant ``Pad``
-    input. Strict shape inference then gives every value and the output their static
-    shapes (the exporter leaves symbolic ones, ``Flatteny_dim_0``, behind that chain),
-    and the full checker must pass.
+    Slice stops torch's own folding). Strict shape inference then gives every value and
+    the output their static shapes (the exporter leaves symbolic ones, ``Flatteny_dim_0``,
+    behind that chain); each ``Pad`` that adds zeros to the last two axes of a 4-d tensor
+    becomes a depthwise ``Conv`` (:func:`_pad_as_conv`), and the full checker must pass.
     """
     model = onnx.load(path)
     graph = model.graph
@@ -631,9 +636,90 @@ def _finish_graph(path: str) -> None:
     )
     graph.ClearField("value_info")
     model = onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True)
+    graph = model.graph
+    types = {v.name: v.type.tensor_type for v in [*graph.input, *graph.value_info]}
+    names = {t.name for t in graph.initializer} | {x for n in graph.node for x in n.output}
+    nodes = []
+    for node in graph.node:
+        conv = node.op_type == "Pad" and _pad_as_conv(node, values, types.get(node.input[0]), names)
+        if not conv:
+            nodes.append(node)
+            continue
+        nodes.append(conv[0])
+        graph.initializer.append(conv[1])
+        names.add(conv[1].name)
+    graph.ClearField("node")
+    graph.node.extend(nodes)
+    used = {x for node in nodes for x in node.input} | {o.name for o in graph.output}
+    kept = [t for t in graph.initializer if t.name in used]
+    graph.ClearField("initializer")
+    graph.initializer.extend(kept)
+    graph.ClearField("value_info")
+    model = onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True)
     for value in [*model.graph.input, *model.graph.output, *model.graph.value_info]:
         dims = value.type.tensor_type.shape.dim
         if not all(d.HasField("dim_value") for d in dims):
             raise ValueError(f"model: the ONNX value {value.name!r} has no static shape")
     onnx.checker.check_model(model, full_check=True)
     onnx.save(model, path)
+
+
+def _pad_as_conv(node, constants: dict, input_type, names: set):
+    """``(conv, weight)``: a ``Conv`` node and its weight initializer that compute the
+    ``Pad`` ``node`` exactly, or None where ``node`` is not a ``Pad`` that adds zeros
+    (``mode`` constant, value 0 or none, pads ``>= 0`` and constant) to the last two axes
+    of a float tensor of static shape ``(N, C, H, W)``.
+
+    Zeros ``t, b`` before and after the rows and ``l, r`` before and after the columns:
+    a depthwise ``Conv`` (``group = C``, stride 1) with symmetric ``pads`` ``P = max(t, b)``
+    and ``Q = max(l, r)`` and a ``(1 + |t − b|) × (1 + |l − r|)`` kernel whose single one
+    sits at ``(P − t, Q − l)``, all else zero: its output ``(N, C, H + t + b, W + l + r)``
+    is the padded tensor, each entry one input times 1 plus zeros. NeuralSAT 0.2.17's
+    auto_LiRPA cannot bound a ``Pad`` (``BoundPad.forward() missing 1 required
+    positional argument: 'pad'``), and the onnx2pytorch of NeuralSAT and α,β-CROWN
+    converts a ``Conv``'s or an ``AveragePool``'s asymmetric ``pads`` into a
+    ``ConstantPad2d`` with rows and columns swapped; zeros concatenated as constants would
+    fix the batch size at 1, where NeuralSAT checks its import on a batch of two.
+    """
+    if node.op_type != "Pad" or node.domain or input_type is None:
+        return None
+    attrs = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+    if attrs.get("mode", b"constant") != b"constant" or len(node.input) < 2:
+        return None
+    ins = list(node.input) + [""] * (4 - len(node.input))
+    if not all(x in constants for x in ins[1:] if x):
+        return None
+    dims = [d.dim_value if d.HasField("dim_value") else None for d in input_type.shape.dim]
+    if len(dims) != 4 or None in dims:
+        return None
+    if ins[2] and np.any(constants[ins[2]] != 0):
+        return None
+    pads = np.asarray(constants[ins[1]], dtype=np.int64).ravel()
+    axes = range(4) if not ins[3] else [int(a) % 4 for a in np.ravel(constants[ins[3]])]
+    full = np.zeros(8, dtype=np.int64)
+    for i, axis in enumerate(axes):
+        full[axis], full[axis + 4] = pads[i], pads[i + len(pads) // 2]
+    if np.any(full < 0) or np.any(full[[0, 1, 4, 5]] != 0):
+        return None
+    t, l, b, r = (int(v) for v in full[[2, 3, 6, 7]])
+    dtype = onnx.helper.tensor_dtype_to_np_dtype(input_type.elem_type)
+    if not np.issubdtype(dtype, np.floating):
+        return None
+    channels, p, q = dims[1], max(t, b), max(l, r)
+    kernel = np.zeros((channels, 1, 1 + abs(t - b), 1 + abs(l - r)), dtype=dtype)
+    kernel[:, :, p - t, q - l] = 1
+    name, k = f"{node.output[0]}.kernel", 0
+    while name in names:
+        k += 1
+        name = f"{node.output[0]}.kernel{k}"
+    conv = onnx.helper.make_node(
+        "Conv",
+        [ins[0], name],
+        list(node.output),
+        name=node.name or node.output[0],
+        group=channels,
+        kernel_shape=list(kernel.shape[2:]),
+        pads=[p, q, p, q],
+        strides=[1, 1],
+    )
+    return conv, numpy_helper.from_array(kernel, name)

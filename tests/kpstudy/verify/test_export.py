@@ -10,6 +10,7 @@ import torch
 from onnx import numpy_helper
 from onnx.reference import ReferenceEvaluator
 from torch import nn
+from torch.nn import functional as F
 
 from kpstudy.models.backbones import build_backbone
 from kpstudy.models.pooling import build_cell_pool, keypoint_cells
@@ -21,6 +22,7 @@ from kpstudy.verify.export import (
     point_of_input,
     read_vnnlib_polytope,
 )
+from kpstudy.verify.ops import cell_pool
 from kpstudy.verify.sets import Box, ConvexHull, Parallelotope
 from kpstudy.verify.simplex_map import box_of_lambda
 from kpstudy.verify.spec import ArgmaxSpec
@@ -159,13 +161,96 @@ def test_onnx_matches_torch(tmp_path, kind, set_kind, form, dtype, prop):
         np.testing.assert_allclose(
             got, want, rtol=0, atol=1e-4 if dtype == torch.float32 else 1e-10
         )
-    # constants are folded: F.pad's pads are an initializer, not a Slice/Concat chain
+    # constants are folded (F.pad's pads leave no Slice/Concat chain), and the cell pools'
+    # zero padding (rows asymmetric: 2 and 0 or 1 and 0) is a one-hot depthwise Conv
     proto = onnx.load(info["onnx"])
     onnx.checker.check_model(proto, full_check=True)
-    graph = proto.graph
-    initializers = {t.name for t in graph.initializer}
-    assert not {"Constant", "ConstantOfShape", "Transpose"} & {n.op_type for n in graph.node}
-    assert all(n.input[1] in initializers for n in graph.node if n.op_type == "Pad")
+    ops = [n.op_type for n in proto.graph.node]
+    assert not {"Constant", "ConstantOfShape", "Transpose", "Pad"} & set(ops)
+    assert ops.count("Conv") == {"conv": 1, "cellpool": 3}[kind]
+
+
+class PaddedPool(nn.Module):
+    """A ``(1, C, 5, 7)`` map padded by ``F.pad`` (``value`` or ``mode``), flattened, then
+    its cell pool (:func:`kpstudy.verify.ops.cell_pool`, which pads it with zeros)."""
+
+    def __init__(self, pad, kernel, value=0.0, mode="constant"):
+        super().__init__()
+        self.pad, self.kernel, self.value, self.mode = pad, kernel, value, mode
+
+    def forward(self, x):
+        value = self.value if self.mode == "constant" else None
+        padded = F.pad(x, self.pad, mode=self.mode, value=value)
+        pooled = cell_pool(x, self.pad, self.kernel, torch.full((1, 1), 0.5))
+        return torch.cat([padded.flatten(1), pooled.flatten(1)], 1)
+
+
+def padded_pool_instance(tmp_path, model, channels, dtype=torch.float32):
+    """``model`` exported over a box of ``(channels, 5, 7)`` maps: the ONNX graph's nodes,
+    its initializers, and its session's outputs and the torch model's at 4 points."""
+    g = torch.Generator().manual_seed(3)
+    lower = torch.randn(channels, 5, 7, generator=g)
+    input_set = Box(lower, lower + torch.rand(channels, 5, 7, generator=g))
+    x = input_set.sample(4, seed=5).to(dtype)
+    with torch.no_grad():
+        want = model(x).numpy()
+    spec = ArgmaxSpec([want.shape[1]], [0])
+    info = export_instance(tmp_path, model, input_set, spec, dtype=dtype, property_form="full")
+    proto = onnx.load(info["onnx"])
+    sess = _session(info["onnx"], dtype)
+    got = np.concatenate([sess.run(["y"], {"x": p[None].numpy()})[0] for p in x])
+    weights = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+    return list(proto.graph.node), weights, got, want
+
+
+@pytest.mark.parametrize(
+    ("pad", "kernel"),
+    [
+        ((0, 2, 3, 1), (3, 3)),
+        ((2, 0, 1, 4), (5, 3)),
+        ((1, 1, 0, 2), (7, 3)),
+        ((0, 0, 2, 2), (3, 7)),
+    ],
+)
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_zero_padding_is_a_one_hot_convolution(tmp_path, pad, kernel, channels, dtype):
+    """Each ``Pad`` of zeros (pads ``(left, right, top, bottom)``, asymmetric along either
+    axis or both, or symmetric) becomes a depthwise ``Conv`` with symmetric pads and a one-hot
+    kernel, which NeuralSAT's auto_LiRPA bounds and the onnx2pytorch of NeuralSAT and
+    α,β-CROWN converts as is (asymmetric ``pads`` it gets wrong): no ``Pad`` is left, the
+    padded map is the torch model's exactly and the cell pool's to rounding (onnxruntime
+    in float32, onnx's reference evaluator in float64)."""
+    model = PaddedPool(pad, kernel).to(dtype)
+    nodes, weights, got, want = padded_pool_instance(tmp_path, model, channels, dtype)
+    convs = [n for n in nodes if n.op_type == "Conv"]
+    assert "Pad" not in {n.op_type for n in nodes} and len(convs) == 1  # one F.pad, traced once
+    left, right, top, bottom = pad
+    p, q = max(top, bottom), max(left, right)
+    for conv in convs:
+        attrs = {a.name: onnx.helper.get_attribute_value(a) for a in conv.attribute}
+        assert attrs["pads"] == [p, q, p, q] and attrs["group"] == channels
+        assert attrs["strides"] == [1, 1]
+        one_hot = np.zeros((channels, 1, 1 + abs(top - bottom), 1 + abs(left - right)))
+        one_hot[:, :, p - top, q - left] = 1
+        np.testing.assert_array_equal(weights[conv.input[1]], one_hot)
+        assert weights[conv.input[1]].dtype == want.dtype
+    assert got.dtype == want.dtype
+    size = channels * (5 + top + bottom) * (7 + left + right)
+    np.testing.assert_array_equal(got[:, :size], want[:, :size])
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-14
+    np.testing.assert_allclose(got[:, size:], want[:, size:], rtol=0, atol=tolerance)
+
+
+@pytest.mark.parametrize(("value", "mode"), [(1.0, "constant"), (0.0, "reflect")])
+def test_other_padding_stays_a_pad(tmp_path, value, mode):
+    """A ``Pad`` of another value or mode is no zero padding: it stays, beside the cell
+    pool's zero padding made a ``Conv``."""
+    model = PaddedPool((0, 2, 3, 1), (3, 3), value=value, mode=mode)
+    nodes, _, got, want = padded_pool_instance(tmp_path, model, 2)
+    ops = [n.op_type for n in nodes]
+    assert ops.count("Pad") == 1 and ops.count("Conv") == 1
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("form", ["box", "simplex"])
@@ -385,11 +470,13 @@ def importer_faults(path) -> list[str]:
     or a ``training_mode`` attribute (onnx2pytorch: "Extraction of attribute training_mode
     not implemented"), a symbolic dimension on a declared input or output or on any value
     after strict shape inference (NeuralSAT took ``Flatteny_dim_0/1`` for (1, 1)), an
-    omitted (``''``) node input (read as the network input for the Pad value) or a
-    ``Pad`` without its value, a ``Gather`` (onnx2pytorch follows it by a ``Squeeze``
-    whose backward bounds auto_LiRPA gets wrong: NeuralSAT 0.2.17 failed to bound the
-    first compact graphs) or a ``Slice`` with steps (onnx2pytorch ignores them), and
-    what the full checker refuses."""
+    omitted (``''``) node input (read as the network input for the Pad value), a ``Pad``
+    (NeuralSAT 0.2.17's auto_LiRPA fails to bound it: "BoundPad.forward() missing 1
+    required positional argument: 'pad'") or asymmetric ``pads`` on another node
+    (onnx2pytorch pads with rows and columns swapped), a ``Gather`` (onnx2pytorch follows
+    it by a ``Squeeze`` whose backward bounds auto_LiRPA gets wrong: NeuralSAT 0.2.17
+    failed to bound the first compact graphs) or a ``Slice`` with steps (onnx2pytorch
+    ignores them), and what the full checker refuses."""
     model = onnx.load(path)
     nodes = model.graph.node
     refused = ("BatchNormalization", "Gather")
@@ -407,8 +494,12 @@ def importer_faults(path) -> list[str]:
         if a.name == "training_mode"
     ]
     faults += [f"omitted input of {n.op_type} {n.name}" for n in nodes if "" in n.input]
+    faults += [f"Pad {n.name}" for n in nodes if n.op_type == "Pad"]
     faults += [
-        f"no pad value on {n.name}" for n in nodes if n.op_type == "Pad" and len(n.input) < 3
+        f"asymmetric pads on {n.name}"
+        for n in nodes
+        for a in n.attribute
+        if a.name == "pads" and a.ints[: len(a.ints) // 2] != a.ints[len(a.ints) // 2 :]
     ]
     values = [*model.graph.input, *model.graph.output]
     try:
@@ -430,10 +521,11 @@ def importer_faults(path) -> list[str]:
 @pytest.mark.parametrize("prop", ["compact", "full"])
 def test_exported_graph_is_portable(tmp_path, arch, prop):
     """The study's CNNs (batch norms after transposed convolutions, which the exporter
-    does not fold) under 23-keypoint cell pooling (Pad, Slice) over a hull, and a batch
-    norm that follows no convolution: no importer fault (:func:`importer_faults`), and
-    onnxruntime still gives the torch model's outputs at the hull's vertices and samples.
-    The compact form's VNN-LIB has one disjunct per keypoint, in a few kilobytes."""
+    does not fold) under 23-keypoint cell pooling (its zero padding a ``Conv``, ``Slice``)
+    over a hull, and a batch norm that follows no convolution: no importer fault
+    (:func:`importer_faults`), and onnxruntime still gives the torch model's outputs at
+    the hull's vertices and samples. The compact form's VNN-LIB has one disjunct per
+    keypoint, in a few kilobytes."""
     if arch == "input_bn":
         model, spec, shape = input_bn_net(), ArgmaxSpec([4, 2], [1, 0]), S
     else:
