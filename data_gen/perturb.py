@@ -196,17 +196,11 @@ def _blocks(data_dir, coco, ids, staging, per_seed, seed, input_size) -> list[di
                 perturbed = seed_image.copy()
                 perturbed[y : y + BLOCK, x : x + BLOCK] = rng.integers(0, 256, (BLOCK, BLOCK, 3))
                 name = f"{image_id:06d}_{'on' if overlapping else 'off'}_{k}.npy"
-                _write_npy(staging / name, perturbed)
+                touches = bool(airplane[y : y + BLOCK, x : x + BLOCK].any())
                 meta.append(
-                    {
-                        "image_id": image_id,
-                        "file": name,
-                        "seed_file": seed_name,
-                        "overlapping": overlapping,
-                        "top_left": [x, y],
-                        "touches_airplane": bool(airplane[y : y + BLOCK, x : x + BLOCK].any()),
-                    }
-                )
+                    _save_input(staging, name, perturbed, image_id, seed_name,
+                                overlapping=overlapping, top_left=[x, y], touches_airplane=touches)
+                )  # fmt: skip
     return meta
 
 
@@ -231,18 +225,12 @@ def _global(data_dir, coco, ids, staging, kind, levels, input_size) -> list[dict
                 raw = apply_global(seed_image, kind, sign * level, clip=False)
                 perturbed = np.clip(raw, 0, 255)
                 name = f"{image_id:06d}_{level:g}_{'plus' if sign > 0 else 'minus'}.npy"
-                _write_npy(staging / name, perturbed)
+                clipped = float(np.mean((raw < 0) | (raw > 255)))
                 meta.append(
-                    {
-                        "image_id": image_id,
-                        "file": name,
-                        "seed_file": seed_name,
-                        "level": float(level),
-                        "sign": sign,
-                        "overlapping": None,
-                        "clipped_fraction": float(np.mean((raw < 0) | (raw > 255))),
-                    }
-                )
+                    _save_input(staging, name, perturbed, image_id, seed_name,
+                                level=float(level), sign=sign, overlapping=None,
+                                clipped_fraction=clipped)
+                )  # fmt: skip
     return meta
 
 
@@ -452,6 +440,13 @@ def perturbed_images(data_dir, kind: str, input_size: int, *, limit: int | None 
 
 def _tuples(scene: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in scene.items()}
+
+
+def _save_input(staging: Path, name: str, image, image_id: int, seed_name: str, **fields) -> dict:
+    """Write the perturbed network input ``image`` (H, W, 3), values 0–255, as
+    ``staging/name``; returns its meta.json row (the seed's id and file, then ``fields``)."""
+    _write_npy(staging / name, image)
+    return {"image_id": image_id, "file": name, "seed_file": seed_name, **fields}
 
 
 def _write_npy(path: Path, array: np.ndarray) -> None:

@@ -321,7 +321,8 @@ def _export(
             staged = staging
             outcome = _write_instances(staging, instances, names, build, options, progress)
             _write_lists(staging, options, outcome)
-            readme = _readme(command, checkpoint, data_dir, origin, options, outcome)
+            header = _readme_header(command, checkpoint, data_dir, origin, options, outcome)
+            readme = _readme(header, options, outcome)
             write_text_atomic(staging / "README.md", readme)
     except _NothingWritten as exc:  # input the grid cannot use: leave nothing behind
         shutil.rmtree(staged, ignore_errors=True)
@@ -461,19 +462,11 @@ def _write_lists(staging: Path, options: _Options, outcome: _Outcome) -> None:
         write_text_atomic(staging / "reference.csv", "\n".join(rows) + "\n")
 
 
-def _readme(
-    command: str,
-    checkpoint: Path,
-    data_dir: Path,
-    origin: dict,
-    options: _Options,
-    outcome: _Outcome,
-) -> str:
-    """The benchmark's README.md: how ``command`` made it from ``checkpoint`` and
-    ``data_dir`` (their digests in ``origin``, :func:`kpstudy.study.campaign.provenance`'s)
-    with ``options``, what an instance is, and the table of ``outcome``'s instances."""
+def _readme(header: list[str], options: _Options, outcome: _Outcome) -> str:
+    """The benchmark's README.md: its ``header`` (:func:`_readme_header`), what an instance
+    is as ``options`` export it, and the table of ``outcome``'s instances."""
     lines = [
-        *_readme_header(command, checkpoint, data_dir, origin, options, outcome),
+        *header,
         *_readme_instance(options),
         *_readme_reference(options, outcome),
         *_readme_mix(options, outcome),
@@ -496,7 +489,9 @@ def _readme_header(
     options: _Options,
     outcome: _Outcome,
 ) -> list[str]:
-    """README.md's title, the command, the versions, digests and options, the layout."""
+    """README.md's title, how ``command`` made the benchmark from ``checkpoint`` and
+    ``data_dir`` (their digests in ``origin``, :func:`kpstudy.study.campaign.provenance`'s):
+    the versions, digests and options, the layout."""
     from kpstudy import __version__ as version
     from kpstudy.io import source_fingerprint
 

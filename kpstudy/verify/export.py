@@ -495,10 +495,6 @@ def _vnnlib_text(
             *(f"(declare-const {v} Real)" for v in y),
             "",
         ]
-        if margins is None:
-            clauses = [f"  (and (>= {y[j]} {y[t]}))" for j, t in rows]
-        else:
-            clauses = [f"  (and (<= {v} 0.0))" for v in y]
     else:
         x = [f"X[{', '.join(map(str, (0, *idx)))}]" for idx in np.ndindex(*shape[1:])]
         y = [f"Y[0, {j}]" for j in range(m)]
@@ -512,10 +508,12 @@ def _vnnlib_text(
             ")",
             "",
         ]
-        if margins is None:
-            clauses = [f"  (>= {y[j]} {y[t]})" for j, t in rows]
-        else:
-            clauses = [f"  (<= {v} 0.0)" for v in y]
+    if margins is None:
+        violations = [f"(>= {y[j]} {y[t]})" for j, t in rows]
+    else:
+        violations = [f"(<= {v} 0.0)" for v in y]
+    clause = "  (and {})" if version == "1.0" else "  {}"  # 1.0: a disjunct is a conjunction
+    clauses = [clause.format(v) for v in violations]
     for v, lo, hi in zip(x, lower, upper):
         lines += [f"(assert (>= {v} {_number(lo)}))", f"(assert (<= {v} {_number(hi)}))"]
     if simplex:
