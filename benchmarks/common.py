@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import copy
 import json
 import platform
-import re
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,7 +13,6 @@ import torch
 from data_gen.camera import intrinsics, overhead_poses
 from data_gen.keypoints import airliner_keypoints
 from kpstudy.pose.geometry import project_batch
-from kpstudy.verify.export import point_of_input
 
 IMAGE_SIZE = (640, 400)
 HEATMAP_SCALE = (64 / 640, 64 / 400)
@@ -81,40 +77,3 @@ def study_hulls(data, kind: str, ms, overlapping: str, seed_index: int, level=No
                 V = hull_vertices(data, image_id, kind, m, o)
                 hulls.append(dict(image_id=image_id, m=m, overlapping=o, V=V))
     return None, hulls
-
-
-#: A verifier's counterexample may leave a float64 worst margin above 0 by this much, times
-#: 1 + max |y(X0)|: the verifiers check their points in float32.
-COUNTEREXAMPLE_TOLERANCE = 1e-5
-
-
-def read_answer(path) -> tuple[str, np.ndarray | None]:
-    """A VNN-COMP verifier's result file (NeuralSAT's ``--result_file``, α,β-CROWN's
-    ``--results_file``): its answer, the first line (``sat``, ``unsat``, ``timeout``, …;
-    ``''`` for an empty file), and the input of a counterexample that follows it, the
-    ``(X_i value)`` pairs as an ndarray in index order (None where there are none)."""
-    status, *lines = Path(path).read_text().splitlines() or [""]
-    pairs = re.findall(r"\(X_(\d+)\s+([^\s)]+)\)", "\n".join(lines))
-    values = {int(k): float(v) for k, v in pairs}
-    return status.strip(), (np.array([values[k] for k in sorted(values)]) if values else None)
-
-
-def check_counterexample(model, hull, spec, x, input_form: str = "box") -> dict:
-    """The float64 re-check of a verifier's counterexample ``x`` (an assignment of an
-    exported instance's ONNX input, :func:`kpstudy.verify.export.point_of_input`'s
-    ``input_form``) on the torch ``model`` (the proxy) over the ``hull`` with ``spec``:
-    ``inside`` (its λ lies in the hull, to 1e-6), ``margin`` (the float64 worst margin at
-    its image), ``scale`` (1 + max |y(X0)|) and ``violates`` (``margin`` ≤
-    :data:`COUNTEREXAMPLE_TOLERANCE` × ``scale``); a real counterexample is ``inside`` and
-    ``violates``."""
-    lam = point_of_input(hull, np.asarray(x)[None], input_form)
-    double = copy.deepcopy(model).double()
-    with torch.no_grad():
-        scale = 1 + double(hull.vertices[:1].double()).abs().max().item()
-        margin = spec.margins(double(hull.image(lam, dtype=torch.float64))).min().item()
-    return {
-        "inside": bool(hull.contains_lambda(lam, tol=1e-6).all()),
-        "margin": margin,
-        "scale": scale,
-        "violates": margin <= COUNTEREXAMPLE_TOLERANCE * scale,
-    }

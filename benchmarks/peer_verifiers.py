@@ -20,7 +20,7 @@ killed, its whole process group, ``--grace`` seconds later:
 
 A result file's first line is the answer (``unsat`` → ``holds``, ``sat`` → ``violated``,
 anything else → ``unknown``); a ``sat`` may list its counterexample, which is re-checked
-in float64 on the torch proxy (:func:`benchmarks.common.check_counterexample`) when the
+in float64 on the torch proxy (:func:`kpstudy.verify.export.check_counterexample`) when the
 benchmark's checkpoint and dataset are found (the paths of README.md's command line, or
 ``--checkpoint`` / ``--data``) and match the SHA-256 digests README.md records. A peer's
 seconds are the wall time of its process, start-up included; kpstudy's are
@@ -55,7 +55,8 @@ import time
 from functools import partial
 from pathlib import Path
 
-from benchmarks.common import check_counterexample, emit, read_answer
+from benchmarks.common import emit
+from kpstudy.verify.export import check_counterexample, read_answer
 
 ROOT = Path(__file__).resolve().parents[1]
 PEERS = ("neuralsat", "abcrown")
@@ -313,7 +314,7 @@ class Rebuilder:
         return self._context
 
     def check(self, name: str, x):
-        """:func:`benchmarks.common.check_counterexample` of ``x`` on instance ``name`` (its
+        """:func:`kpstudy.verify.export.check_counterexample` of ``x`` on instance ``name`` (its
         ``inside``, ``margin``, ``violates``), or a string saying why it was not checked."""
         from kpstudy.study.campaign import Instance
         from kpstudy.study.vnncomp import _build, instance_name

@@ -23,10 +23,9 @@ import pytest
 import torch
 from torch import nn
 
-from benchmarks.common import check_counterexample, read_answer
 from kpstudy.models.pooling import build_cell_pool
 from kpstudy.verify import ConvexHull, verify
-from kpstudy.verify.export import export_instance
+from kpstudy.verify.export import check_counterexample, export_instance, read_answer
 from kpstudy.verify.spec import ArgmaxSpec
 from tests.helpers.tiny_proxies import make_instance
 
@@ -79,8 +78,8 @@ def neuralsat(onnx_path, vnnlib_path, folder: Path):
 
 def assert_counterexample(model, hull, spec, x):
     """``x`` (a ``sat`` answer's box input) is a point of the hull whose float64 worst
-    margin on ``model`` is ≤ 0, up to benchmarks.common's tolerance
-    (:func:`benchmarks.common.check_counterexample`); returns that margin."""
+    margin on ``model`` is ≤ 0, up to the re-check's tolerance
+    (:func:`kpstudy.verify.export.check_counterexample`); returns that margin."""
     found = check_counterexample(model, hull, spec, x, "box")
     assert found["inside"] and found["violates"], (x, found)
     return found["margin"]
@@ -169,10 +168,9 @@ def test_neuralsat_proves_through_the_cell_pool(tmp_path):
 def test_neuralsat_reads_the_study_benchmark(study, tmp_path):
     """The tiny study's exported benchmark (the trained CNN's proxy: cell pooling with
     zero padding as a one-hot ``Conv``, ``AveragePool`` and ``Slice``, then the compact
-    worst-margin tree; the
-    ``study`` fixture of tests/conftest.py): NeuralSAT decides every instance as
-    reference.csv (kpstudy's verdict) has it, and each counterexample is one for the proxy
-    in float64."""
+    worst-margin tree; the ``study`` fixture of tests/conftest.py): NeuralSAT decides every
+    instance as reference.csv (kpstudy's verdict) has it, and each counterexample is one for
+    the proxy in float64."""
     from kpstudy.certify.allocation_method import build_instance
     from kpstudy.study.campaign import _context, grid, instance_vertices
     from kpstudy.study.vnncomp import export_benchmark, instance_name

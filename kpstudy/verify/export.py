@@ -29,7 +29,7 @@ NeuralSAT, NNV, PyRAT, Marabou, …) can run the very instance this package chec
     static shapes on every value, batch 1 (no symbolic dimension); every node input
     named; constants folded; zero padding (``F.pad``, the cell pool's) is no ``Pad`` node
     but a depthwise ``Conv`` with a one-hot kernel and symmetric ``pads``
-    (:func:`_pad_as_conv`; NeuralSAT 0.2.17's auto_LiRPA cannot bound a ``Pad``, and
+    (``_pad_as_conv()``; NeuralSAT 0.2.17's auto_LiRPA cannot bound a ``Pad``, and
     onnx2pytorch turns a ``Conv``'s or ``AveragePool``'s asymmetric ``pads`` into a wrong
     padding), a ``Pad`` of another value or mode stays one; it passes
     ``onnx.checker.check_model(full_check=True)`` and strict shape inference.
@@ -721,3 +721,40 @@ def _pad_as_conv(node, constants: dict, input_type, names: set):
         strides=[1, 1],
     )
     return conv, numpy_helper.from_array(kernel, name)
+
+
+#: A verifier's counterexample may leave a float64 worst margin above 0 by this much, times
+#: ``1 + max |y(X0)|``: the verifiers check their points in float32.
+COUNTEREXAMPLE_TOLERANCE = 1e-5
+
+
+def read_answer(path) -> tuple[str, np.ndarray | None]:
+    """A VNN-COMP verifier's result file (NeuralSAT's ``--result_file``, α,β-CROWN's
+    ``--results_file``): its answer, the first line (``sat``, ``unsat``, ``timeout``, …;
+    ``''`` for an empty file), and the input of a counterexample that follows it, the
+    ``(X_i value)`` pairs as an ndarray in index order (None where there are none)."""
+    status, *lines = Path(path).read_text().splitlines() or [""]
+    pairs = re.findall(r"\(X_(\d+)\s+([^\s)]+)\)", "\n".join(lines))
+    values = {int(k): float(v) for k, v in pairs}
+    return status.strip(), (np.array([values[k] for k in sorted(values)]) if values else None)
+
+
+def check_counterexample(model, hull, spec, x, input_form: str = "box") -> dict:
+    """The float64 re-check of a verifier's counterexample ``x`` (an assignment of an
+    exported instance's ONNX input, :func:`kpstudy.verify.export.point_of_input`'s
+    ``input_form``) on the torch ``model`` (the proxy) over the ``hull`` with ``spec``:
+    ``inside`` (its λ lies in the hull, to 1e-6), ``margin`` (the float64 worst margin at
+    its image), ``scale`` (``1 + max |y(X0)|``) and ``violates`` (``margin`` ≤
+    :data:`COUNTEREXAMPLE_TOLERANCE` × ``scale``); a real counterexample is ``inside`` and
+    ``violates``."""
+    lam = point_of_input(hull, np.asarray(x)[None], input_form)
+    double = copy.deepcopy(model).double()
+    with torch.no_grad():
+        scale = 1 + double(hull.vertices[:1].double()).abs().max().item()
+        margin = spec.margins(double(hull.image(lam, dtype=torch.float64))).min().item()
+    return {
+        "inside": bool(hull.contains_lambda(lam, tol=1e-6).all()),
+        "margin": margin,
+        "scale": scale,
+        "violates": margin <= COUNTEREXAMPLE_TOLERANCE * scale,
+    }

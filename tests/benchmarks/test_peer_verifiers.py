@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks import peer_verifiers
-from benchmarks.common import read_answer
+from kpstudy.verify.export import read_answer
 
 #: The stand-in: reads the instance from --net / --onnx_path, writes its answer to
 #: --result_file / --results_file, and leaves a parse cache beside --vnnlib_path as
