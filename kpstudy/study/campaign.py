@@ -955,9 +955,19 @@ def run_hull(instances: list[Instance], settings: Settings) -> list[dict]:
             for r in rows
             if r["image_id"] == first.image_id and np.isclose(r["level"], first.level)
         )
+    peak = peak_memory_mib()
     for record in records:
         record["clipped_fraction"] = float(clipped)
+        record["peak_memory_mib"] = peak
     return records
+
+
+def peak_memory_mib() -> float:
+    """This process's largest resident set so far, MiB (``getrusage``'s ``ru_maxrss``,
+    KiB on Linux): in a campaign worker, what the hulls it has run needed at most."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 @functools.lru_cache(maxsize=2)

@@ -185,15 +185,20 @@ def run_cost(out) -> pd.DataFrame:
         images), ``instances`` (records: every model, reading and cell), ``hours``
         (summed ``total_time``, one worker's hours; the pose-bound method's search of a
         hull is in its first cell's), ``median_s`` (seconds per instance), ``paper_hours``
-        (``hours × PAPER_SEEDS / seeds``).
+        (``hours × PAPER_SEEDS / seeds``), ``peak_gib`` (the largest campaign worker's
+        resident memory, GiB, from the records' ``peak_memory_mib``; NaN where not
+        recorded): the memory each of the paper profile's workers needs as well, since its
+        instances are the same size.
     """
     rows = []
     for name in COMPARED:
         path = Path(out) / "tables" / f"{name}_records.csv"
         if not path.is_file():
             continue
-        records = pd.read_csv(path, usecols=lambda c: c in ("image_id", "total_time"))
-        if records.empty or records.shape[1] < 2:
+        records = pd.read_csv(
+            path, usecols=lambda c: c in ("image_id", "total_time", "peak_memory_mib")
+        )
+        if records.empty or not {"image_id", "total_time"} <= set(records):
             continue
         seeds = records["image_id"].nunique()
         hours = records["total_time"].sum() / 3600
@@ -205,10 +210,12 @@ def run_cost(out) -> pd.DataFrame:
                 hours=hours,
                 median_s=records["total_time"].median(),
                 paper_hours=hours * PAPER_SEEDS / seeds,
+                peak_gib=records.get("peak_memory_mib", pd.Series(dtype=float)).max() / 1024,
             )
         )
     return pd.DataFrame(
-        rows, columns=["table", "seeds", "instances", "hours", "median_s", "paper_hours"]
+        rows,
+        columns=["table", "seeds", "instances", "hours", "median_s", "paper_hours", "peak_gib"],
     )
 
 
@@ -256,15 +263,18 @@ def cost_markdown(cost: pd.DataFrame) -> list[str]:
         "the paper profile's budgets are seconds (600 s an instance), not nodes. It runs "
         "on a Dask cluster with `python -m kpstudy reproduce --profile paper --scheduler "
         "tcp://HOST:8786` (`dask scheduler` on one machine, `dask worker tcp://HOST:8786` "
-        "on each of the others).",
+        "on each of the others). Memory: the largest campaign worker's resident set, which "
+        "each of the paper profile's workers needs too (its instances are the same size).",
         "",
-        "| table | seeds | instances | hours | median s / instance | paper profile, hours |",
-        "|---|---|---|---|---|---|",
+        "| table | seeds | instances | hours | median s / instance | paper profile, hours "
+        "| largest worker, GiB |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in cost.itertuples(index=False):
+        memory = "–" if pd.isna(r.peak_gib) else f"{r.peak_gib:.1f}"
         lines.append(
             f"| {r.table} | {r.seeds} | {r.instances} | {r.hours:.2f} | {_sec(r.median_s)} | "
-            f"{r.paper_hours:.1f} |"
+            f"{r.paper_hours:.1f} | {memory} |"
         )
     return [*lines, ""]
 

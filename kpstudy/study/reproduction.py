@@ -433,9 +433,9 @@ def campaign_errors(out: Path) -> None:
 
 
 def is_timing(column: str) -> bool:
-    """Whether a table column measures time (``time``, ``pb_time_mean``, ``seconds`` …):
-    the one thing two runs of a profile may differ in."""
-    return "time" in column or "seconds" in column
+    """Whether a table column measures time (``time``, ``pb_time_mean``, ``seconds`` …)
+    or memory (``peak_memory_mib``): the things two runs of a profile may differ in."""
+    return any(word in column for word in ("time", "seconds", "memory"))
 
 
 def compare_results(a, b) -> dict[str, str]:

@@ -417,7 +417,13 @@ def test_the_report_opens_with_each_tables_cost_and_the_paper_profiles(tmp_path)
     assert row.hours == pytest.approx(1.0) and row.median_s == 720
     assert row.paper_hours == pytest.approx(200 / 3)
     text = report.write_report(out).read_text()
-    assert "| t_global | 3 | 5 | 1.00 | 720 | 66.7 |" in text
+    assert "| t_global | 3 | 5 | 1.00 | 720 | 66.7 | – |" in text  # memory not recorded
+    # Records with each worker's peak memory: the table gives the largest.
+    records.assign(peak_memory_mib=[900.0, 1200, 3072, 2000, 512]).to_csv(
+        out / "tables" / "t_global_records.csv", index=False
+    )
+    assert report.run_cost(out).iloc[0].peak_gib == pytest.approx(3.0)
+    assert "| t_global | 3 | 5 | 1.00 | 720 | 66.7 | 3.0 |" in report.write_report(out).read_text()
     assert "--profile paper --scheduler" in text
     assert report.cost_markdown(report.run_cost(tmp_path / "empty")) == []
 

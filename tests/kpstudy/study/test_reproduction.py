@@ -227,16 +227,16 @@ def _results(root, **tables):
     return root
 
 
-def test_compare_results_names_what_differs_and_sets_timing_aside(tmp_path):
+def test_compare_results_names_what_differs_and_sets_timing_and_memory_aside(tmp_path):
     a = _results(
         tmp_path / "a",
-        t="status,pb_time,capped\nholds,1.0,0\nunknown,2.0,0\n",
+        t="status,pb_time,capped,peak_memory_mib\nholds,1.0,0,900\nunknown,2.0,0,900\n",
         only_a="x\n1\n",
         rows="x\n1\n",
     )
     b = _results(
         tmp_path / "b",
-        t="status,pb_time,capped\nholds,7.5,0\nholds,300.0,1\n",
+        t="status,pb_time,capped,peak_memory_mib\nholds,7.5,0,1100\nholds,300.0,1,1100\n",
         rows="x\n1\n2\n",
     )
     assert compare_results(a, b) == {
