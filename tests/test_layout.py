@@ -163,6 +163,7 @@ ACROSS = {
     "test_api_docs.py": "the API reference's build",
     "test_marabou.py": "Marabou, an outside oracle for kpstudy.verify",
     "test_neuralsat.py": "NeuralSAT, a second outside oracle for kpstudy.verify",
+    "test_reference_results.py": "the committed reference results under docs/results",
 }
 
 #: What else a mirror folder may hold besides test files.
