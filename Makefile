@@ -8,7 +8,7 @@ PROFILE ?= quick
 SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1 libgbm1 libgl1-mesa-dri
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system venv neuralsat test test-fast lint docs reproduce retrain-friendly bench clean
+.PHONY: setup system venv neuralsat test test-fast lint docs reproduce retrain-friendly retrain-resnet bench clean
 
 setup: system $(STAMP)
 
@@ -68,7 +68,11 @@ reproduce: setup
 
 # The same, training the verification-friendly CNN from scratch instead of using the shipped one.
 retrain-friendly: setup
-	$(PY) -m kpstudy reproduce --profile $(PROFILE) --retrain-friendly
+	$(PY) -m kpstudy reproduce --profile $(PROFILE) --retrain cnn_patch_smooth
+
+# The same, training the ResNet-18 from scratch instead of using the shipped one (where one ships).
+retrain-resnet: setup
+	$(PY) -m kpstudy reproduce --profile $(PROFILE) --retrain resnet18
 
 bench: setup
 	$(PY) benchmarks/run_all.py

@@ -91,9 +91,12 @@ def main(argv=None) -> int:
     )
     rep.add_argument("--scheduler", help="Dask scheduler address for the campaigns")
     rep.add_argument(
-        "--retrain-friendly",
-        action="store_true",
-        help="train the verification-friendly CNN from scratch (default: the shipped one)",
+        "--retrain",
+        nargs="+",
+        default=(),
+        metavar="MODEL",
+        help="train these models (cnn_patch_smooth, resnet18) instead of copying their "
+        "shipped checkpoints",
     )
 
     from kpstudy.models.training import CERTIFIED_GROUP, CERTIFIED_WEIGHT, TrainConfig
@@ -240,7 +243,7 @@ def main(argv=None) -> int:
                 stages=args.stages or STAGES,
                 notebooks=args.notebooks,
                 scheduler=args.scheduler,
-                retrain_friendly=args.retrain_friendly,
+                retrain=args.retrain,
                 command=_command_line(argv),
             )
             print(f"results written to {out}")

@@ -5,12 +5,13 @@ Stages, in order; each is skipped when its outputs are current:
 1. **data** (paper §8.1): the rendered COCO dataset (data_gen), the perturbation sets of
    its test seed images (objects at the render's resolution, blocks at the ResNet-18
    input, brightness and contrast at the CNN input). Reused when its settings match.
-2. **train**: the CNN and the ResNet-18 heatmap backbones (:func:`kpstudy.models.training.train`,
-   which resumes an interrupted run and returns a finished one as it is), and the
-   verification-friendly CNN (:data:`FRIENDLY`: the patch-decoder CNN trained with the
-   bound term of :mod:`kpstudy.models.certified`). Its quick-profile checkpoint ships with
-   kpstudy (:data:`SHIPPED`) and is copied when it was made by the same recipe on the
-   same dataset; otherwise, or with ``retrain_friendly``, it is trained.
+2. **train**: the CNN and the ResNet-18 (:data:`RESNET`) heatmap backbones
+   (:func:`kpstudy.models.training.train`, which resumes an interrupted run and returns a
+   finished one as it is), and the verification-friendly CNN (:data:`FRIENDLY`: the
+   patch-decoder CNN trained with the bound term of :mod:`kpstudy.models.certified`). A
+   model whose quick-profile checkpoint ships with kpstudy (:data:`SHIPPED`, written by
+   :func:`ship`) gets a copy of it when it was made by the same recipe on the same
+   dataset; otherwise, or when ``retrain`` names the model, it is trained.
 3. **notebooks**: ``notebooks/NN_*.ipynb`` run by papermill with the profile's
    parameters into ``results/<profile>/notebooks/``. Each writes its tables (CSV and
    Markdown, the paper's numbers beside ours) under ``tables/`` and its figures under
@@ -76,9 +77,22 @@ FRIENDLY_FINETUNE = dict(
 )
 #: The verification-friendly CNN's stages in order, each from the weights of the one before.
 FRIENDLY_STAGES = (FRIENDLY, FRIENDLY_FINETUNE)
-#: The verification-friendly CNN trained on the quick profile's dataset by
-#: :data:`FRIENDLY_STAGES`.
-SHIPPED = Path(__file__).resolve().parents[1] / "models" / "weights" / f"{FRIENDLY_MODEL}_quick.pt"
+#: The ResNet-18's recipe (``TrainConfig`` fields), the paper's on 2 CPU cores: 30 epochs of
+#: batches of 32 images, targets of σ = 2 heatmap pixels, a one-cycle learning rate peaking
+#: at 2e-3, bfloat16 forward passes. The profile's ``seed``, ``resnet_epochs``,
+#: ``resnet_images`` and ``precision`` take the place of its own (:func:`resnet_recipe`).
+RESNET = dict(
+    backbone="resnet18", epochs=30, batch_size=32, sigma=2.0, lr=2e-3, precision="bfloat16"
+)
+_WEIGHTS = Path(__file__).resolve().parents[1] / "models" / "weights"
+#: The checkpoints that ship with kpstudy, by model, each trained on the quick profile's
+#: dataset and written by :func:`ship` beside its card: the verification-friendly CNN by
+#: :data:`FRIENDLY_STAGES`, the ResNet-18 by :data:`RESNET` on every training image (where
+#: the file is missing, the model is trained).
+SHIPPED = {
+    FRIENDLY_MODEL: _WEIGHTS / f"{FRIENDLY_MODEL}_quick.pt",
+    "resnet18": _WEIGHTS / "resnet18_quick.pt",
+}
 
 
 @dataclass(frozen=True)
@@ -112,8 +126,8 @@ class Profile:
         far tighter on the CNN than ``'forward'`` but takes seconds to minutes per node on
         2 CPU cores.
     precision : the natural CNN's and ResNet-18's training forward pass
-        (:class:`kpstudy.models.training.TrainConfig`'s ``precision``; the verification-
-        friendly CNN's recipe keeps its own).
+        (:class:`kpstudy.models.training.TrainConfig`'s ``precision``, in place of
+        :data:`RESNET`'s; the verification-friendly CNN's recipe keeps its own).
     symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
     figure_images : seed images of F-sym and F-alloc.
     overlapping_share : the share of each seed's object occlusions whose patch is aimed at
@@ -277,6 +291,7 @@ _QUICK = Profile(
     dataset_size="640x400",
     perturbed_seeds=8,
     cnn_epochs=16,
+    # RESNET's 30 epochs on every image once SHIPPED["resnet18"] (trained so) is committed
     resnet_epochs=1,
     resnet_images=256,
     images=30,
@@ -360,17 +375,17 @@ def reproduce(
     notebooks=None,
     scheduler: str | None = None,
     progress: bool = True,
-    retrain_friendly: bool = False,
+    retrain=(),
     command: str | None = None,
 ) -> Path:
     """Run ``stages`` of the profile and return its results folder ``out_root/<name>``
     (``notebooks``: names of the notebooks stage's notebooks to run, e.g. ``['06_local']``,
-    default all; ``retrain_friendly``: train the verification-friendly CNN even where the
-    shipped checkpoint fits). Each stage, finished or interrupted, adds its seconds, the
-    commit and ``command`` (the command line, where there is one) to the folder's
-    ``runs.jsonl`` (:func:`kpstudy.study.reference.log_stage`). When the notebooks or the
-    report ran and a campaign's records there hold instances that ended ``'error'``, every
-    stage still runs; then they are printed and
+    default all; ``retrain``: models of :data:`SHIPPED` to train even where the shipped
+    checkpoint fits, :func:`train_models`). Each stage, finished or interrupted, adds its
+    seconds, the commit and ``command`` (the command line, where there is one) to the
+    folder's ``runs.jsonl`` (:func:`kpstudy.study.reference.log_stage`). When the
+    notebooks or the report ran and a campaign's records there hold instances that ended
+    ``'error'``, every stage still runs; then they are printed and
     :class:`kpstudy.study.campaign.InstanceErrors` is raised with their count
     (:func:`campaign_errors`)."""
     prof = profile(prof) if isinstance(prof, str) else prof
@@ -381,6 +396,7 @@ def reproduce(
     unknown = [n for n in notebooks or () if n not in names]
     if unknown:
         raise ValueError(f"notebooks: expected some of {names}, got {unknown}")
+    _check_retrain(retrain)
     out = Path(out_root) / prof.name
     out.mkdir(parents=True, exist_ok=True)
     timings = {}
@@ -392,7 +408,7 @@ def reproduce(
             if stage == "data":
                 data(prof, out, progress=progress)
             elif stage == "train":
-                train_models(prof, out, progress=progress, retrain_friendly=retrain_friendly)
+                train_models(prof, out, progress=progress, retrain=retrain)
             elif stage == "notebooks":
                 run_notebooks(prof, out, scheduler=scheduler, progress=progress, only=notebooks)
             else:
@@ -585,16 +601,42 @@ def follows_recipe(state: dict, stages) -> bool:
     return [unseeded(c) for c in made] == [replace(c, init=None) for c in stages]
 
 
-def train_models(
-    prof: Profile, out: Path, *, progress: bool = True, retrain_friendly: bool = False
-) -> dict[str, Path]:
+def resnet_recipe(prof: Profile):
+    """The ResNet-18's :class:`kpstudy.models.training.TrainConfig` on ``prof``:
+    :data:`RESNET` with the profile's seed, epochs, training images and precision."""
+    from kpstudy.models.training import TrainConfig
+
+    return TrainConfig(
+        **{
+            **RESNET,
+            "epochs": prof.resnet_epochs,
+            "images": prof.resnet_images,
+            "seed": prof.seed,
+            "precision": prof.precision,
+        }
+    )
+
+
+def _check_retrain(retrain) -> None:
+    """A ValueError unless ``retrain`` is a collection of :data:`SHIPPED`'s model names."""
+    if isinstance(retrain, str) or not set(retrain) <= set(SHIPPED):
+        raise ValueError(f"retrain: expected some of {', '.join(SHIPPED)}, got {retrain!r}")
+
+
+def train_models(prof: Profile, out: Path, *, progress: bool = True, retrain=()) -> dict[str, Path]:
     """Train (or resume, or reuse) the CNN, the verification-friendly CNN and the
-    ResNet-18 on ``out/data``."""
+    ResNet-18 on ``out/data``.
+
+    A model of :data:`SHIPPED` whose shipped checkpoint was made by the same recipe on the
+    same dataset gets a copy of it, unless ``retrain`` (model names) names it: then a copy
+    made earlier (a checkpoint without optimiser state) is deleted and the model trained;
+    a checkpoint trained here, finished or not, stays and is resumed."""
     import torch
 
     from data_gen.dataset import load_coco
     from kpstudy.models.training import TrainConfig, config_of, train, weights_digest
 
+    _check_retrain(retrain)
     paths = checkpoints(out)
     dataset = load_coco(out / "data")["info"]["config"]
     stages = friendly_recipe(prof)
@@ -606,40 +648,46 @@ def train_models(
             seed=prof.seed,
             precision=prof.precision,
         ),
-        "resnet18": TrainConfig(
-            "resnet18",
-            epochs=prof.resnet_epochs,
-            images=prof.resnet_images,
-            seed=prof.seed,
-            batch_size=16,
-            lr=1e-3,
-            precision=prof.precision,
-        ),
+        "resnet18": resnet_recipe(prof),
     }
     device = "cuda" if torch.cuda.is_available() else "cpu"
 
+    def load(file: Path) -> dict:
+        return torch.load(file, map_location="cpu", weights_only=True)
+
     def made_by(file: Path, config: TrainConfig) -> bool:
-        state = torch.load(file, map_location="cpu", weights_only=True)
+        state = load(file)
         return config_of(state) == config and state["dataset"]["config"] == dataset
 
     def friendly(file: Path) -> bool:
-        state = torch.load(file, map_location="cpu", weights_only=True)
+        state = load(file)
         return follows_recipe(state, stages) and state["dataset"]["config"] == dataset
 
-    for name, config in configs.items():
-        path = paths[name]
-        if path.is_file() and not made_by(path, config):  # another profile's or dataset's
+    fits = {name: lambda file, c=config: made_by(file, c) for name, config in configs.items()}
+    fits[FRIENDLY_MODEL] = friendly
+    for name, path in paths.items():
+        shipped = SHIPPED.get(name)
+        if path.is_file() and (
+            not fits[name](path)  # another profile's, recipe's or dataset's
+            or (name in retrain and "optimizer" not in load(path))  # a shipped copy
+        ):
             path.unlink()
-        train(out / "data", path, config, device=device, progress=progress)
+        if (
+            not path.is_file()
+            and name not in retrain
+            and shipped is not None
+            and shipped.is_file()
+            and fits[name](shipped)
+        ):
+            write_bytes_atomic(path, shipped.read_bytes())
+
+    for name, config in configs.items():
+        train(out / "data", paths[name], config, device=device, progress=progress)
 
     # The earlier stages are written only when they are trained here (not with the
     # shipped checkpoint): models/cnn_patch_smooth_stage1.pt, …
     path = paths[FRIENDLY_MODEL]
-    if path.is_file() and (retrain_friendly or not friendly(path)):
-        path.unlink()
-    if not path.is_file() and not retrain_friendly and SHIPPED.is_file() and friendly(SHIPPED):
-        write_bytes_atomic(path, SHIPPED.read_bytes())
-    if path.is_file() and torch.load(path, weights_only=True)["epoch"] >= stages[-1].epochs:
+    if path.is_file() and load(path)["epoch"] >= stages[-1].epochs:
         return paths
     init = digest = None  # the stage before: its checkpoint and its weights' digest
     for i, stage in enumerate(stages):
@@ -653,34 +701,51 @@ def train_models(
     return paths
 
 
-def probe_input():
-    """A fixed input ``(1, 3, 64, 64)`` float32 in [0, 1], the same on every machine, whose
-    heatmaps the shipped checkpoint's card records (a load check)."""
+def probe_input(size: int = 64):
+    """A fixed input ``(1, 3, size, size)`` float32 in [0, 1], the same on every machine,
+    whose heatmaps a shipped checkpoint's card records (a load check; ``size``: the
+    backbone's input size in pixels)."""
     import torch
 
-    return torch.linspace(0.0, 1.0, 3 * 64 * 64).reshape(1, 3, 64, 64).flip(-1)
+    _checks.integer(size, "size", minimum=1)
+    return torch.linspace(0.0, 1.0, 3 * size * size).reshape(1, 3, size, size).flip(-1)
 
 
-def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
-    """Write the verification-friendly checkpoint ``checkpoint`` (trained by
-    :data:`FRIENDLY_STAGES` on ``data_dir``) to ``target`` without its optimiser state (the
-    checkpoint is finished), and its card ``target.json``: the recipe (and the earlier
-    stages', ``lineage``, earliest first), the test-split
-    metrics of :func:`kpstudy.models.evaluation.evaluate` and the heatmaps' sum and absolute sum
-    on :func:`probe_input`. Returns the card."""
+def ship(checkpoint, data_dir, target: Path, *, half: bool = False) -> dict:
+    """Write the finished checkpoint ``checkpoint`` (trained on ``data_dir``) to ``target``
+    without its optimiser state, with ``half`` its floating-point weights as float16 (half
+    the file; :func:`kpstudy.models.training.load_checkpoint` loads them into a float32
+    model), and its card ``target.json``: the recipe (and the earlier stages',
+    ``lineage``, earliest first), the dataset, the test-split metrics of
+    :func:`kpstudy.models.evaluation.evaluate` and the heatmaps' sum and absolute sum on
+    :func:`probe_input` at the backbone's input size, both of the weights written. Nothing
+    is written unless all of it is. Returns the card."""
+    import tempfile
+
     import torch
 
     from kpstudy.models.evaluation import evaluate
     from kpstudy.models.training import load_checkpoint
 
-    backbone, state = load_checkpoint(checkpoint)
+    _, state = load_checkpoint(checkpoint)
     if state["epoch"] < state["config"]["epochs"]:
         raise ValueError(f"checkpoint: {checkpoint} is not finished")
     state = {k: v for k, v in state.items() if k not in ("optimizer", "scheduler")}
     state["dataset"] = dict(state["dataset"], path=None)  # no path of this machine
-    summary, _ = evaluate(checkpoint, data_dir, "test")
+    if half:
+        model = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
+        if not all(bool(torch.isfinite(v).all()) for v in model.values()):
+            raise ValueError(f"half: {checkpoint} holds weights beyond float16's range")
+        state["model"] = model
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    with tempfile.TemporaryDirectory() as folder:  # what is evaluated is what is written
+        written = Path(folder) / "shipped.pt"
+        written.write_bytes(buffer.getvalue())
+        backbone, _ = load_checkpoint(written)
+        summary, _ = evaluate(written, data_dir, "test")
     with torch.no_grad():
-        h = backbone(probe_input()).double()
+        h = backbone(probe_input(backbone.input_size)).double()
     card = {
         "recipe": state["config"],
         "lineage": state.get("lineage", []),
@@ -688,8 +753,6 @@ def ship_friendly(checkpoint, data_dir, target: Path = SHIPPED) -> dict:
         "test": summary.to_dict(orient="records"),
         "probe": {"sum": float(h.sum()), "abs_sum": float(h.abs().sum())},
     }
-    buffer = io.BytesIO()
-    torch.save(state, buffer)
     write_bytes_atomic(target, buffer.getvalue())
     write_text_atomic(target.with_suffix(".json"), json.dumps(card, indent=1) + "\n")
     return card

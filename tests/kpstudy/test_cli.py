@@ -274,6 +274,7 @@ def test_ctrl_c_starts_its_line_whenever_it_comes(monkeypatch, moment, ctrl_c, w
         (["--images", "0"], "images: expected a positive number"),
         (["--seeds", "500"], "seeds: expected at most perturbed_seeds=8"),
         (["--stages", "data", "fly"], "stages: expected some of"),
+        (["--retrain", "resnet18", "vgg"], "retrain: expected some of cnn_patch_smooth, resnet18"),
     ],
 )
 def test_bad_arguments_exit_non_zero_and_write_nothing(tmp_path, args, message):
@@ -283,5 +284,5 @@ def test_bad_arguments_exit_non_zero_and_write_nothing(tmp_path, args, message):
         text=True,
     )
     assert proc.returncode == 2
-    assert message in proc.stderr
+    assert message in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
     assert not any(tmp_path.iterdir())

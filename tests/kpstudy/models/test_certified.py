@@ -325,6 +325,7 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     import json
 
     from kpstudy.study.reproduction import (
+        FRIENDLY_MODEL,
         FRIENDLY_STAGES,
         PROFILES,
         SHIPPED,
@@ -333,8 +334,9 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
         probe_input,
     )
 
-    backbone, state = load_checkpoint(SHIPPED)
-    card = json.loads(SHIPPED.with_suffix(".json").read_text())
+    shipped = SHIPPED[FRIENDLY_MODEL]
+    backbone, state = load_checkpoint(shipped)
+    card = json.loads(shipped.with_suffix(".json").read_text())
     made = [TrainConfig(**c) for c in state["lineage"]] + [config_of(state)]
     assert len(made) == len(FRIENDLY_STAGES)
     for config, stage in zip(made, FRIENDLY_STAGES):
@@ -353,16 +355,16 @@ def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
     assert argmax["pck@2"] >= 0.95 and argmax["inside_xi@1"] >= 0.645
 
 
-def test_ship_friendly_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):
+def test_ship_writes_a_finished_checkpoint_and_its_card(tiny_dataset, tmp_path):
     import json
 
-    from kpstudy.study.reproduction import ship_friendly
+    from kpstudy.study.reproduction import ship
 
     config = TrainConfig("cnn_patch", epochs=1, batch_size=4, images=4, seed=2)
     path = tmp_path / "trained.pt"
     train(tiny_dataset, path, config, progress=False)
     target = tmp_path / "shipped.pt"
-    card = ship_friendly(path, tiny_dataset, target)
+    card = ship(path, tiny_dataset, target)
     state = torch.load(target, weights_only=True)
     assert "optimizer" not in state and state["dataset"]["path"] is None
     assert json.loads(target.with_suffix(".json").read_text()) == card

@@ -1,7 +1,8 @@
 """kpstudy.study.reproduction: `python -m kpstudy reproduce` end to end at a tiny scale (data
 → train → the eight notebooks under papermill → REPORT.md; a rerun finds everything
-current), and the notebooks' kernels: over IPC (no IPKernel eavesdropping warning), their
-own diagnostics in a log file."""
+current), the shipped ResNet-18 checkpoint (written, copied or retrained), and the
+notebooks' kernels: over IPC (no IPKernel eavesdropping warning), their own diagnostics
+in a log file."""
 
 from __future__ import annotations
 
@@ -16,7 +17,14 @@ import pandas as pd
 import pytest
 
 from kpstudy.study.report import SECTIONS
-from kpstudy.study.reproduction import NOTEBOOKS, PROFILES, compare_results, profile, reproduce
+from kpstudy.study.reproduction import (
+    NOTEBOOKS,
+    PROFILES,
+    SHIPPED,
+    compare_results,
+    profile,
+    reproduce,
+)
 from kpstudy.study.tables import PAPER_T_PROB
 
 # A tiny variant of the standard profile: its readings, the zonotope under node budgets,
@@ -290,6 +298,182 @@ def test_the_standard_profile_reaches_the_campaigns_and_notebooks_run_alone(tmp_
     assert local["allocation"] == global_["allocation"] == prof.allocation
     with pytest.raises(ValueError, match=r"^notebooks: expected some of \["):
         reproduce(prof, tmp_path, stages=("notebooks",), notebooks=["09_nothing"])
+
+
+def test_ship_half_writes_float16_weights_that_load_as_float32_and_match_the_card(
+    tiny_dataset, tmp_path
+):
+    """The ResNet-18's shipping path: float16 weights on disk, a float32 model when loaded,
+    the card's test metrics and probe those of the loaded file; ``train`` takes the shipped
+    file as finished (as ``train_models`` does with a copy)."""
+    import torch
+
+    from kpstudy.models.evaluation import evaluate
+    from kpstudy.models.training import load_checkpoint, train
+    from kpstudy.study.reproduction import probe_input, resnet_recipe, ship
+
+    config = resnet_recipe(TINY)
+    assert (config.backbone, config.epochs, config.images) == ("resnet18", 1, 4)
+    path = tmp_path / "trained.pt"
+    train(tiny_dataset, path, config, progress=False)
+    target = tmp_path / "resnet18_quick.pt"
+    card = ship(path, tiny_dataset, target, half=True)
+    state = torch.load(target, weights_only=True)
+    assert "optimizer" not in state and state["dataset"]["path"] is None
+    floats = [v for v in state["model"].values() if v.is_floating_point()]
+    assert floats and all(v.dtype == torch.float16 for v in floats)
+    assert json.loads(target.with_suffix(".json").read_text()) == card
+    assert card["recipe"] == state["config"] and card["lineage"] == []
+    backbone, _ = load_checkpoint(target)
+    assert {p.dtype for p in backbone.state_dict().values() if p.is_floating_point()} == {
+        torch.float32
+    }
+    summary, _ = evaluate(target, tiny_dataset, "test")
+    pd.testing.assert_frame_equal(pd.DataFrame(card["test"]), summary)
+    with torch.no_grad():
+        h = backbone(probe_input(backbone.input_size)).double()
+    assert h.shape[-1] == 256
+    assert h.sum().item() == pytest.approx(card["probe"]["sum"], rel=1e-6, abs=1e-6)
+    assert h.abs().sum().item() == pytest.approx(card["probe"]["abs_sum"], rel=1e-6)
+    assert train(tiny_dataset, target, config, progress=False)["epoch"] == 1  # finished
+
+
+def test_the_probe_input_is_the_same_fixed_ramp_at_any_size():
+    import torch
+
+    from kpstudy.study.reproduction import probe_input
+
+    ramp = torch.linspace(0.0, 1.0, 3 * 64 * 64).reshape(1, 3, 64, 64).flip(-1)
+    assert torch.equal(probe_input(), ramp)  # the friendly CNN's card's probe
+    assert probe_input(256).shape == (1, 3, 256, 256)
+    with pytest.raises(ValueError, match=r"^size: expected a positive integer, got 0$"):
+        probe_input(0)
+
+
+@pytest.fixture
+def shipping(tiny_dataset, tmp_path, monkeypatch):
+    """``train_models`` on the tiny dataset (``out/data``) with a stand-in ``train`` that
+    records ``(checkpoint name, config)`` and writes nothing, and :data:`SHIPPED` pointed
+    at ``tmp_path/shipped`` (empty). Returns ``(out, shipped folder, calls)``."""
+    import shutil
+
+    from kpstudy.models import training
+    from kpstudy.study import reproduction as module
+
+    out = tmp_path / "out"
+    shutil.copytree(tiny_dataset, out / "data")
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    monkeypatch.setattr(module, "SHIPPED", {m: shipped / f"{m}.pt" for m in module.SHIPPED})
+    calls = []
+
+    def train(data_dir, out, config, **_):
+        calls.append((Path(out).name, config))
+        return {"model": {}}
+
+    monkeypatch.setattr(training, "train", train)
+    return out, shipped, calls
+
+
+def _checkpoint(file: Path, config, data_dir: Path, **extra) -> bytes:
+    """Write a checkpoint of ``config`` on ``data_dir``'s dataset, no weights; its bytes."""
+    from dataclasses import asdict
+
+    import torch
+
+    from data_gen.dataset import load_coco
+
+    dataset = dict(config=load_coco(data_dir)["info"]["config"], path=None)
+    torch.save(dict(config=asdict(config), dataset=dataset, epoch=config.epochs, **extra), file)
+    return file.read_bytes()
+
+
+def test_train_models_copies_a_shipped_resnet_made_by_its_recipe(shipping):
+    from kpstudy.study.reproduction import resnet_recipe, train_models
+
+    out, shipped, calls = shipping
+    config = resnet_recipe(TINY)
+    made = _checkpoint(shipped / "resnet18.pt", config, out / "data")
+    paths = train_models(TINY, out, progress=False)
+    assert paths["resnet18"].read_bytes() == made  # train then finds it finished
+    assert ("resnet18.pt", config) in calls
+    assert not paths["cnn_patch_smooth"].exists()  # none shipped here: trained
+
+
+@pytest.mark.parametrize(
+    "change", [dict(resnet_epochs=2), dict(resnet_images=8), dict(precision="float32")]
+)
+def test_train_models_trains_a_resnet_whose_shipped_one_another_recipe_made(shipping, change):
+    from kpstudy.study.reproduction import resnet_recipe, train_models
+
+    out, shipped, calls = shipping
+    _checkpoint(shipped / "resnet18.pt", resnet_recipe(replace(TINY, **change)), out / "data")
+    (out / "models").mkdir()
+    _checkpoint(
+        out / "models" / "resnet18.pt", resnet_recipe(replace(TINY, **change)), out / "data"
+    )
+    paths = train_models(TINY, out, progress=False)
+    assert not paths["resnet18"].exists()  # the other recipe's copy went; train writes none
+    assert ("resnet18.pt", resnet_recipe(TINY)) in calls
+
+
+def test_train_models_trains_a_resnet_on_another_dataset_than_the_shipped_ones(shipping):
+    from kpstudy.study.reproduction import resnet_recipe, train_models
+
+    out, shipped, calls = shipping
+    _checkpoint(shipped / "resnet18.pt", resnet_recipe(TINY), out / "data")
+    info = json.loads((out / "data" / "annotations.json").read_text())
+    info["info"]["config"]["seed"] += 1
+    (out / "data" / "annotations.json").write_text(json.dumps(info))
+    assert not train_models(TINY, out, progress=False)["resnet18"].exists()
+
+
+def test_retrain_trains_instead_of_copying_and_keeps_a_checkpoint_trained_here(shipping):
+    from kpstudy.study.reproduction import resnet_recipe, train_models
+
+    out, shipped, calls = shipping
+    config = resnet_recipe(TINY)
+    made = _checkpoint(shipped / "resnet18.pt", config, out / "data")
+    path = train_models(TINY, out, progress=False)["resnet18"]
+    assert path.read_bytes() == made
+    train_models(TINY, out, progress=False, retrain=["resnet18"])
+    assert not path.exists()  # the shipped copy went
+    trained = _checkpoint(path, config, out / "data", optimizer={})
+    train_models(TINY, out, progress=False, retrain=["resnet18"])
+    assert path.read_bytes() == trained  # resumed, not begun again
+
+
+@pytest.mark.parametrize("retrain", [("vgg",), ["resnet18", "cnn"], "resnet18"])
+def test_retrain_names_only_models_that_ship(tmp_path, retrain):
+    message = "retrain: expected some of cnn_patch_smooth, resnet18, got "
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+        reproduce(TINY, tmp_path, retrain=retrain)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.skipif(
+    not SHIPPED["resnet18"].is_file(), reason="the trained ResNet-18 has not shipped yet"
+)
+def test_the_shipped_resnet_is_the_recipes_and_matches_its_card():
+    import torch
+
+    from kpstudy.models.training import config_of, load_checkpoint
+    from kpstudy.study.reproduction import RESNET, probe_input, resnet_recipe
+
+    shipped = SHIPPED["resnet18"]
+    backbone, state = load_checkpoint(shipped)
+    card = json.loads(shipped.with_suffix(".json").read_text())
+    config = config_of(state)
+    assert {k: getattr(config, k) for k in RESNET} == RESNET and config.images is None
+    assert config == resnet_recipe(PROFILES["quick"])  # reproduce copies it
+    friendly = json.loads(SHIPPED["cnn_patch_smooth"].with_suffix(".json").read_text())
+    assert state["dataset"]["config"] == friendly["dataset"]["config"]  # the quick dataset
+    assert card["recipe"] == state["config"] and card["dataset"] == state["dataset"]
+    assert "optimizer" not in state and state["epoch"] == RESNET["epochs"]
+    with torch.no_grad():
+        h = backbone(probe_input(backbone.input_size)).double()
+    assert h.sum().item() == pytest.approx(card["probe"]["sum"], rel=1e-5, abs=1e-3)
+    assert h.abs().sum().item() == pytest.approx(card["probe"]["abs_sum"], rel=1e-5)
 
 
 def test_a_notebook_kernels_own_stderr_goes_to_its_log_file(tmp_path):
