@@ -123,6 +123,51 @@ class PatchNet(nn.Module):
         return self.decoder(self.encoder(x))
 
 
+class TinyResNet(nn.Module):
+    """ResNet-18's shape in miniature: a strided stem, kpstudy's own ``BasicBlock`` with a
+    strided 1×1 shortcut and one with the identity, then a decoder of 4×4 transposed
+    convolutions of stride 2 with batch norms and ReLUs and a 1×1 convolution to the
+    heatmaps. Input ``(B, 3, 16, 16)`` → heatmaps ``(B, 3, 16, 16)``."""
+
+    def __init__(self, seed: int):
+        from kpstudy.models.resnet import BasicBlock
+
+        super().__init__()
+        torch.manual_seed(seed)
+        self.net = nn.Sequential(
+            nn.Conv2d(3, 8, 3, 2, 1, bias=False), nn.BatchNorm2d(8), nn.ReLU(),
+            BasicBlock(8, 12, 2), BasicBlock(12, 12, 1),
+            nn.ConvTranspose2d(12, 8, 4, 2, 1, bias=False), nn.BatchNorm2d(8), nn.ReLU(),
+            nn.ConvTranspose2d(8, 6, 4, 2, 1, bias=False), nn.BatchNorm2d(6), nn.ReLU(),
+            nn.Conv2d(6, 3, 1),
+        )  # fmt: skip
+        with torch.no_grad():
+            for m in self.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.running_mean.uniform_(-0.3, 0.3)
+                    m.running_var.uniform_(0.5, 2.0)
+                    m.bias.uniform_(-0.2, 0.2)
+        self.eval()
+
+    def forward(self, x):
+        return self.net(x)
+
+
+def block_hull_vertices(seed: int, n: int = 4, size: int = 16, block: int = 3) -> torch.Tensor:
+    """A random seed image ``(3, size, size)`` in [0, 1] and ``n`` copies of it, each with
+    one ``block × block`` square of one random colour at a random place (T-resnet's
+    occlusions in miniature): ``(n + 1, 3, size, size)``."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.rand(3, size, size, generator=g)
+    images = [x0]
+    for _ in range(n):
+        r, c = torch.randint(0, size - block + 1, (2,), generator=g).tolist()
+        x = x0.clone()
+        x[:, r : r + block, c : c + block] = torch.rand(3, 1, 1, generator=g)
+        images.append(x)
+    return torch.stack(images)
+
+
 def mlp(seed: int, sizes=(6, 5, 5, 3)) -> nn.Sequential:
     """A ReLU MLP on ``(B, sizes[0])``, float64."""
     torch.manual_seed(seed)

@@ -5,7 +5,14 @@ import torch
 from torch import nn
 
 from kpstudy.verify import ConvexHull, Parallelotope, reachable_argmax
-from tests.helpers.verify_nets import MixedNet, PatchNet, PoolProxy, hull_vertices
+from tests.helpers.verify_nets import (
+    MixedNet,
+    PatchNet,
+    PoolProxy,
+    TinyResNet,
+    block_hull_vertices,
+    hull_vertices,
+)
 
 #: A node budget (a few seconds of search here; the searches that end take at most ~260
 #: nodes), so the sets do not depend on the machine's speed; the timeout (s) only caps a
@@ -46,6 +53,24 @@ def test_possible_sets_contain_every_sampled_argmax(seed, n, method):
         for index, lam in regions.witnesses[g].items():  # every witness reproduces
             assert bool(hull.contains_lambda(lam))
             y = model(hull.image(lam[None])).flatten(1)[:, 3 * g : 3 * g + 3]
+            assert int(y.argmax()) == index
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_block_hulls_of_a_residual_network_keep_every_sampled_argmax(seed):
+    """Per heatmap of a tiny ResNet (strided residual blocks, a transposed-convolution
+    decoder) over a hull of 3×3 block occlusions, the zonotope search's possible pixels
+    hold every sampled argmax, and each witness reproduces its pixel."""
+    model = TinyResNet(seed)
+    hull = ConvexHull(block_hull_vertices(seed))
+    sizes = [16 * 16] * 3
+    regions = reachable_argmax(model, hull, sizes, method="zonotope", max_nodes=64, timeout=CAP)
+    sampled = sampled_argmax(model, hull, sizes)
+    for g, size in enumerate(sizes):
+        possible = set(regions.possible[g].tolist())
+        assert sampled[g] <= possible and len(possible) < size  # sound, and it decides
+        for index, lam in regions.witnesses[g].items():
+            y = model(hull.image(lam[None])).flatten(1)[:, size * g : size * (g + 1)]
             assert int(y.argmax()) == index
 
 
