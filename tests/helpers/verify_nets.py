@@ -8,6 +8,19 @@ from torch import nn
 from kpstudy.models.pooling import build_cell_pool
 
 
+def _random_batch_norms(net: nn.Module, mean: float, bias: float) -> None:
+    """Give every ``BatchNorm2d`` of ``net`` random running statistics (means in
+    ``±mean``, variances in [0.5, 2]) and biases in ``±bias``, so that the folded affine
+    maps are not the identity; then put ``net`` in eval mode."""
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.running_mean.uniform_(-mean, mean)
+                m.running_var.uniform_(0.5, 2.0)
+                m.bias.uniform_(-bias, bias)
+    net.eval()
+
+
 class MixedNet(nn.Module):
     """Every supported operator once: conv, batch norm, ReLU, residual add, average pool
     (with padding, real pixels only), max pool, slicing, concatenation, transposed conv,
@@ -111,13 +124,7 @@ class PatchNet(nn.Module):
             nn.ConvTranspose2d(6, mid, 1, bias=False), nn.BatchNorm2d(mid),
             nn.ConvTranspose2d(mid, 3, 2, stride=2),
         )  # fmt: skip
-        with torch.no_grad():
-            for m in self.modules():
-                if isinstance(m, nn.BatchNorm2d):
-                    m.running_mean.uniform_(-0.5, 0.5)
-                    m.running_var.uniform_(0.5, 2.0)
-                    m.bias.uniform_(-0.3, 0.3)
-        self.eval()
+        _random_batch_norms(self, mean=0.5, bias=0.3)
 
     def forward(self, x):
         return self.decoder(self.encoder(x))
@@ -141,13 +148,7 @@ class TinyResNet(nn.Module):
             nn.ConvTranspose2d(8, 6, 4, 2, 1, bias=False), nn.BatchNorm2d(6), nn.ReLU(),
             nn.Conv2d(6, 3, 1),
         )  # fmt: skip
-        with torch.no_grad():
-            for m in self.modules():
-                if isinstance(m, nn.BatchNorm2d):
-                    m.running_mean.uniform_(-0.3, 0.3)
-                    m.running_var.uniform_(0.5, 2.0)
-                    m.bias.uniform_(-0.2, 0.2)
-        self.eval()
+        _random_batch_norms(self, mean=0.3, bias=0.2)
 
     def forward(self, x):
         return self.net(x)
