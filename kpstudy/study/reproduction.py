@@ -291,7 +291,6 @@ _QUICK = Profile(
     dataset_size="640x400",
     perturbed_seeds=8,
     cnn_epochs=16,
-    # RESNET's 30 epochs on every image once SHIPPED["resnet18"] (trained so) is committed
     resnet_epochs=1,
     resnet_images=256,
     images=30,
