@@ -98,7 +98,7 @@ SECTIONS = (
         "T-resnet: block occlusions, ResNet-18",
         "08_resnet",
         ["t_resnet"],
-        ["t_resnet"],
+        ["t_resnet", "t_resnet_pose_bound"],
         "paper §8.4",
     ),
 )

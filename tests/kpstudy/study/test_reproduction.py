@@ -181,6 +181,14 @@ def test_a_changed_parameter_reruns_only_its_notebooks(run, capsys):
             "local_pose_bound: expected {'cnn' or 'cnn_patch_smooth'",
         ),
         (
+            dict(resnet_pose_bound={"cnn": {}}),
+            "resnet_pose_bound: expected {'resnet18': {setting: value}}, got 'cnn': {}",
+        ),
+        (
+            dict(resnet_pose_bound={"resnet18": {"pose_bound_nodes": -1}}),
+            "resnet_pose_bound: pose_bound_nodes: expected None or an integer >= 0, got -1",
+        ),
+        (
             dict(allocation={"vgg": {"nodes": 2}}),
             "allocation: expected {'cnn' or 'cnn_patch_smooth': {setting: value}}",
         ),
