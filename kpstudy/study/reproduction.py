@@ -129,7 +129,7 @@ class Profile:
     precision : the natural CNN's and ResNet-18's training forward pass
         (:class:`kpstudy.models.training.TrainConfig`'s ``precision``, in place of
         :data:`RESNET`'s; the verification-friendly CNN's recipe keeps its own).
-    symmetry_backbone : the model of F-sym (the paper uses ResNet-18).
+    symmetry_backbone : the model of F-sym (``'resnet18'``, as in the paper, or ``'cnn'``).
     figure_images : seed images of F-sym and F-alloc.
     overlapping_share : the share of each seed's object occlusions whose patch is aimed at
         the airplane (:func:`data_gen.perturb.make_perturbations`; ``None``: every patch at
@@ -162,7 +162,7 @@ class Profile:
     global_pose_bound: dict = field(default_factory=lambda: dict(GLOBAL_POSE_BOUND))
     resnet_pose_bound: dict = field(default_factory=lambda: dict(RESNET_POSE_BOUND))
     precision: str = "float32"
-    symmetry_backbone: str = "cnn"
+    symmetry_backbone: str = "resnet18"
     figure_images: int = 50
     workers: int = 1
     seed: int = 0
@@ -366,7 +366,6 @@ PROFILES = {
         resnet_pose_bound={
             "resnet18": dict(pose_bound_method="zonotope", pose_bound_timeout=3600.0)
         },
-        symmetry_backbone="resnet18",
         figure_images=3000,
     ),
 }
