@@ -36,9 +36,11 @@ Methods
     in one block (``kpstudy.verify.symbols``), until an operator that mixes space (a
     pool, a flatten, a linear layer) needs the dense stack; the proxy's cell pool reads
     the blocks itself.
-    Symbols are numbered across branches, so two ReLU branches never share one. Past
-    :func:`symbol_budget` symbols the smallest further errors go into the radius instead
-    (sound, looser).
+    Symbols are numbered across branches, so two ReLU branches never share one. Their
+    memory is budgeted in elements (:data:`ZONOTOPE_ELEMENTS` per region): a symbol costs
+    the most its coefficients ever hold (:func:`symbol_footprints`: its window's extent
+    through the blocks, a whole value once it is dense), and past the budget a ReLU's
+    smallest further errors go into the radius instead (sound, looser).
 
 Floating point: bounds are computed in the graph's dtype; the verifier asks for a
 margin above a tolerance or recomputes a node in float64 before it says ``holds``.
@@ -48,18 +50,19 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 
 import torch
 
 from kpstudy import _checks
-from kpstudy.verify import operators
+from kpstudy.verify import operators, symbols
 from kpstudy.verify.graph import Graph, trace
 from kpstudy.verify.region import Region, domain_min, symbol_reach
 
 METHODS = ("ibp", "forward", "crown", "zonotope")
-#: Elements a zonotope's centre stack may hold per region (symbols × the largest
-#: activation; 2 GiB in float32): on the paper-sized CNN (131 072 activations in its
-#: largest layer) that is 4096 error symbols.
+#: Elements a zonotope's error symbols may hold per region (2 GiB in float32), each symbol
+#: counted at its :func:`symbol_footprints`: as dense rows on the paper-sized CNN (131 072
+#: activations in its largest layer) that would be 4096 symbols.
 ZONOTOPE_ELEMENTS = 2**29
 
 
@@ -91,7 +94,7 @@ def propagate(
     With ``zonotope``, unstable ReLUs add error-symbol rows to the centre stacks (method
     ``'zonotope'``): a value's ``mid`` is ``(B, q + E, *S)``, its first ``q`` rows the
     affine part in ``θ`` and the others its coefficients on the first ``E`` symbols (at
-    most ``max_generators``, default :func:`symbol_budget`); ``rad`` stays
+    most ``max_generators`` if given, and within :data:`ZONOTOPE_ELEMENTS`); ``rad`` stays
     ``(B, q, *S)``. Inside, the symbols travel in spatial blocks where they can
     (``kpstudy.verify.symbols``); what ``visit(i, value)`` (if given) sees of
     every node is a dense ``Region``, and so is the output unless ``dense`` is False: then an
@@ -105,9 +108,10 @@ def propagate(
     one node of a large zonotope can take minutes.
     """
     q = region.rad.shape[1]
-    if max_generators is None:
-        max_generators = symbol_budget(graph, q)
-    p = operators.Pass(graph, q, region.domain, max_generators)
+    elements = ZONOTOPE_ELEMENTS - q * max(math.prod(n.shape) for n in graph.nodes)
+    p = operators.Pass(
+        graph, q, region.domain, max_generators, symbol_footprints(graph), max(0, elements)
+    )
     values: list[Region | None] = [None] * len(graph.nodes)
     if region.blocks is not None or region.mid.shape[1] > q:  # symbols of an earlier pass
         if not zonotope:
@@ -135,14 +139,76 @@ def propagate(
     return Region(p.dense(out), out.rad, region.domain), p.saved
 
 
-def symbol_budget(graph: Graph, q: int) -> int:
-    """Error symbols a zonotope carries on ``graph`` (:data:`ZONOTOPE_ELEMENTS` over its
-    largest activation, less the ``q`` affine rows), capped at one per ReLU neuron."""
+def zonotope_elements(graph: Graph, q: int) -> int:
+    """Elements a zonotope's centre stack holds at most per region on ``graph``: the
+    ``q`` affine rows of its largest value, then :data:`ZONOTOPE_ELEMENTS` or, if less,
+    one symbol per ReLU neuron at its footprint (:func:`symbol_footprints`)."""
     biggest = max(math.prod(n.shape) for n in graph.nodes)
-    relus = sum(
-        math.prod(n.shape) for n in graph.nodes[1:] if operators.rules(n.op.kind).makes_symbols
+    every = sum(
+        math.prod(graph.nodes[i].shape) * cost for i, cost in symbol_footprints(graph).items()
     )
-    return max(0, min(relus, ZONOTOPE_ELEMENTS // biggest - q))
+    return q * biggest + min(every, ZONOTOPE_ELEMENTS)
+
+
+_FOOTPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def symbol_footprints(graph: Graph) -> dict[int, int]:
+    """Per symbol-making node (a ReLU) ``i``: the most elements one error symbol made there
+    holds in any later value, per region (the zonotope's memory budget counts symbols at
+    this).
+
+    While a value's symbols travel in blocks (:mod:`kpstudy.verify.symbols`), a symbol
+    holds its window: a ``1 × 1`` window at the middle of node ``i`` is mapped through the
+    later local operators as the pass maps it (the windows' extents, not their values);
+    from the first operator that reads the dense stack on, it holds whole values. A
+    symbol made where the stack is dense holds the largest later value. Computed once
+    per graph."""
+    if graph in _FOOTPRINTS:
+        return _FOOTPRINTS[graph]
+    nodes = graph.nodes
+    sizes = [math.prod(n.shape) for n in nodes]
+    later = [max(sizes[i:]) for i in range(len(nodes))]  # the largest value from i on
+    blocked = [True] + [False] * (len(nodes) - 1)  # whether a value keeps symbols in blocks
+    for j, node in enumerate(nodes[1:], start=1):
+        ins = [nodes[k].shape for k in node.inputs]
+        rule = operators.rules(node.op.kind)
+        through = rule.makes_symbols or (
+            isinstance(rule, operators.AffineRules) and symbols.is_local(node.op, ins, node.shape)
+        )
+        blocked[j] = through and all(blocked[k] for k in node.inputs)
+    out = {}
+    with torch.no_grad():
+        for i, node in enumerate(nodes):
+            if i == 0 or not operators.rules(node.op.kind).makes_symbols:
+                continue
+            if not (blocked[i] and len(node.shape) == 3):
+                out[i] = later[i]
+                continue
+            C, H, W = node.shape
+            one = torch.ones(1, 1, C, 1, 1, dtype=graph.dtype)
+            middle = torch.tensor([[H // 2]]), torch.tensor([[W // 2]])
+            reach = {i: [symbols.Block(one, 0, *middle)]}
+            cost = C
+            for j in range(i + 1, len(nodes)):
+                after = nodes[j]
+                held = [reach.get(k) for k in after.inputs]
+                if all(h is None for h in held):
+                    continue
+                if not blocked[j]:
+                    cost = max(cost, later[j])
+                    break
+                if operators.rules(after.op.kind).makes_symbols:
+                    reach[j] = held[0]
+                elif len(held) == 1:
+                    reach[j] = symbols.apply(after.op, held[0], after.shape)
+                else:
+                    shapes = [nodes[k].shape for k in after.inputs]
+                    reach[j] = symbols.combine(after.op, [h or [] for h in held], shapes)
+                cost = max(cost, sum(b.coeff[0, 0].numel() for b in reach[j]))
+            out[i] = cost
+    _FOOTPRINTS[graph] = out
+    return out
 
 
 # -- margins -------------------------------------------------------------------------------

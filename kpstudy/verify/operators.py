@@ -105,8 +105,14 @@ class Pass:
         ``θ`` rows (1 for an interval region).
     domain : str
         ``'simplex'``, ``'cube'`` or ``'point'``.
-    max_generators : int
-        Error symbols a zonotope may make in all.
+    max_generators : int or None
+        Error symbols a zonotope may make in all (None: no count).
+    footprints : dict
+        Symbol-making node → elements one of its symbols holds at most, per region
+        (:func:`kpstudy.verify.bounds.symbol_footprints`).
+    elements : int
+        Elements, per region, the symbols still to be made may hold (each at its
+        footprint).
     made : int
         Rows of the dense stack in use: the ``θ`` rows, then every symbol made so far (in
         any branch), so that a new symbol never shares a number.
@@ -114,11 +120,24 @@ class Pass:
         Node index → what its ``backward`` rule needs.
     """
 
-    def __init__(self, graph, q: int, domain: str, max_generators: int) -> None:
+    def __init__(
+        self, graph, q: int, domain: str, max_generators, footprints: dict, elements: int
+    ) -> None:
         self.graph, self.q, self.domain = graph, q, domain
         self.max_generators = max_generators
+        self.footprints, self.elements = footprints, elements
         self.made = q
         self.saved: dict[int, tuple] = {}
+
+    def allow(self, i: int, wanted: int) -> int:
+        """How many of ``wanted`` new symbols node ``i`` may make (the count cap and the
+        element budget), charged to the budget."""
+        left = self.elements // self.footprints[i]
+        if self.max_generators is not None:
+            left = min(left, self.max_generators - (self.made - self.q))
+        k = max(0, min(wanted, left))
+        self.elements -= k * self.footprints[i]
+        return k
 
     def dense(self, value: Region) -> torch.Tensor:
         """The dense stack ``(B, rows, *S)`` of a value."""
@@ -198,8 +217,8 @@ class AffineRules(Rules):
 class ReLURules(Rules):
     """``forward``: the triangle relaxation (lower slope 0 or 1, whichever leaves the
     smaller area; upper the chord). ``zonotope``: DeepZ, ``s·x + μ + μ·ε`` with one new
-    symbol ``ε`` per unstable neuron (``s = u/(u − l)``, ``μ = −s·l/2``); past
-    ``max_generators`` symbols the smallest ``μ`` go to the radius."""
+    symbol ``ε`` per unstable neuron (``s = u/(u − l)``, ``μ = −s·l/2``); past the
+    pass's budget (:meth:`Pass.allow`) the smallest ``μ`` go to the radius."""
 
     makes_symbols = True
 
@@ -255,12 +274,12 @@ class ReLURules(Rules):
 
     def _dense(self, p, i, x):
         """DeepZ on a dense stack: ``s·x + μ + μ·ε_new`` per unstable ReLU."""
-        q, mid, rad = p.q, x.mid, x.rad
+        mid, rad = x.mid, x.rad
         l, u = x.bounds()
         s, mu = self._deepz(p, i, l, u)
         B, rows = mid.shape[:2]
         flat_mu = mu.reshape(B, -1)
-        k = min(int((flat_mu > 0).sum(1).max()), max(0, p.max_generators - (rows - q)))
+        k = p.allow(i, int((flat_mu > 0).sum(1).max()))
         order = flat_mu.argsort(1, descending=True)[:, :k]  # the k largest μ of each region
         out = mid.new_empty(B, rows + k, *mu.shape[1:])  # written once: the stacks are large
         torch.mul(mid, s[:, None], out=out[:, :rows])
@@ -280,9 +299,8 @@ class ReLURules(Rules):
         s, mu = self._deepz(p, i, l, u)
         B = mid.shape[0]
         flat_mu = mu.reshape(B, -1)
-        left = max(0, p.max_generators - (p.made - p.q))
         most = int((flat_mu > 0).sum(1).max())
-        k, kept = min(most, left), flat_mu
+        k, kept = p.allow(i, most), flat_mu
         if k < most:  # the k largest μ of each region
             kept = torch.zeros_like(flat_mu)
             if k > 0:

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from kpstudy import _checks
+from kpstudy.verify import symbols
 from kpstudy.verify.bounds import propagate
 from kpstudy.verify.graph import trace
 from kpstudy.verify.region import domain_min
@@ -481,9 +482,21 @@ class _Reach:
         beaten = (lower.gather(2, top).amax(-1, keepdim=True) > upper + self.tol_abs) & valid
         # One group at a time, over the indices the intervals leave and the candidates:
         # their symbols alone are read (a dense stack of every output's symbols can be
-        # ten times the pass that made it).
+        # ten times the pass that made it); with the symbols in blocks and a heatmap per
+        # group, only those that reach the candidate (symbols.overlap).
+        hw = out.mid.shape[-2:]
+        windowed = (
+            bool(out.blocks)
+            and out.mid.dim() == 5
+            and out.mid.shape[2] == valid.shape[0]
+            and hw[0] * hw[1] == valid.shape[1]
+            and bool(valid.all())
+        )
         for g in (~beaten & valid).any(0).any(-1).nonzero().flatten().tolist():
             left = ((~beaten[:, g]) & valid[g]).any(0).nonzero().flatten()  # (L,)
+            if windowed:
+                self._margins_by_overlap(out, g, left, low, up, spread, top, beaten)
+                continue
             tops, slot = top[:, g].unique(return_inverse=True)  # (U,), (B, k)
             coeff = out.symbols_at(flat[g, torch.cat([left, tops])])  # (B, E, L + U)
             symbols_g, picks = coeff[..., : len(left)], coeff[..., len(left) :]
@@ -497,6 +510,22 @@ class _Reach:
                 share = l1_rows(symbols_g - pick)  # (B, L)
                 beaten[:, g, left] |= margin - share > self.tol_abs
         return ~beaten & valid
+
+    def _margins_by_overlap(self, out, g, left, low, up, spread, top, beaten) -> None:
+        """``_exact``'s linear test of group ``g`` (channel ``g`` of a ``(G, H, W)`` output
+        whose symbols are in blocks) on indices ``left``: the symbols' share of each
+        margin from their reach and :func:`~kpstudy.verify.symbols.overlap`."""
+        W = out.mid.shape[-1]
+        up_g = up[:, :, g, left]  # (B, q, L)
+        for c in range(self.k):
+            at = top[:, g, c]  # (B,)
+            margin = domain_min(
+                low[:, :, g].gather(2, at.view(-1, 1, 1).expand(-1, low.shape[1], 1)) - up_g,
+                out.domain,
+            )
+            shared = symbols.overlap(out.blocks, g, at // W, at % W, out.mid.shape[-2:])
+            share = spread[:, g, left] + spread[:, g].gather(1, at[:, None]) - shared[:, left]
+            beaten[:, g, left] |= margin - share > self.tol_abs
 
     def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
         """``y (..., N)`` flat outputs → ``(..., G, S)``, ``fill`` where a group is short."""

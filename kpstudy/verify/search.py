@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 
 from kpstudy import _checks
-from kpstudy.verify.bounds import BoundsTimeout, symbol_budget
+from kpstudy.verify.bounds import BoundsTimeout, zonotope_elements
 
 
 class Step(NamedTuple):
@@ -132,14 +132,16 @@ def branch_and_bound(
 
 
 def default_batch(graph, input_set, zonotope: bool, memory: int, widest: int = 0) -> int:
-    """Nodes bounded together: as many as keep the largest bound tensor (centre and radius
-    coefficient stacks of the largest value, counting a zonotope's error symbols, or
-    ``widest`` elements per row if larger) within ``memory`` elements, at most 64."""
+    """Nodes bounded together: as many as keep twice the largest centre stack (its affine
+    rows on the largest value, or ``widest`` elements per row if larger, and a zonotope's
+    error symbols: :func:`~kpstudy.verify.bounds.zonotope_elements`) within ``memory``
+    elements, at most 64."""
     rows = input_set.rows
-    if zonotope:
-        rows += symbol_budget(graph, rows)
     biggest = max(widest, *(math.prod(n.shape) for n in graph.nodes))
-    return max(1, min(64, memory // (2 * rows * biggest)))
+    held = rows * biggest
+    if zonotope:
+        held = max(held, zonotope_elements(graph, rows))
+    return max(1, min(64, memory // (2 * held)))
 
 
 def absolute_tol(graph, input_set, tol: float) -> float:

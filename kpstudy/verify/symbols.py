@@ -187,6 +187,36 @@ def gather(blocks: list[Block], rows: int, start: int, like: torch.Tensor, index
     return out[..., back]
 
 
+def overlap(blocks: list[Block], channel: int, y: torch.Tensor, x: torch.Tensor, size):
+    """``Σ_e |s_e(i)| + |s_e(c)| − |s_e(i) − s_e(c)|`` over the symbols ``e`` of region
+    ``b`` whose window covers the entry ``c = (channel, y[b], x[b])``, for every entry
+    ``i`` of that channel: ``(B, H·W)`` for ``y, x (B,)`` and a ``(C, H, W)`` value of
+    ``size = (H, W)``.
+
+    With the reach ``ρ`` (:func:`reach`), ``Σ_e |s_e(i) − s_e(c)| = ρ(i) + ρ(c) −
+    overlap(i)`` exactly (a symbol whose window misses ``c`` adds ``|s_e(i)|``), so a
+    margin's share of the symbols costs the few symbols that reach ``c`` rather than a
+    read of every symbol on every entry. ``blocks`` must not be empty."""
+    H, W = size
+    B = y.shape[0]
+    out = blocks[0].coeff.new_zeros(B * H * W)
+    for b in blocks:
+        h, w = b.coeff.shape[-2:]
+        dy, dx = y[:, None] - b.y, x[:, None] - b.x  # (B, r): c within each window
+        region, row = ((dy >= 0) & (dy < h) & (dx >= 0) & (dx < w)).nonzero(as_tuple=True)
+        if len(region) == 0:
+            continue
+        window = b.coeff[region, row, channel]  # (n, h, w)
+        at_c = window[torch.arange(len(region)), dy[region, row], dx[region, row]]
+        at_c = at_c[:, None, None]
+        term = window.abs() + at_c.abs() - (window - at_c).abs()
+        iy = b.y[region, row][:, None, None] + torch.arange(h)[:, None]  # (n, h, 1)
+        ix = b.x[region, row][:, None, None] + torch.arange(w)  # (n, 1, w)
+        index = region[:, None, None] * (H * W) + iy * W + ix
+        out.index_add_(0, index.reshape(-1), term.reshape(-1))
+    return out.view(B, H * W)
+
+
 def dense(mid: torch.Tensor, blocks: list[Block], rows: int) -> torch.Tensor:
     """The dense stack ``(B, rows, *S)``: ``mid (B, q, *S)`` then every symbol's row, each
     block's windows (``S = (C, H, W)``) scattered into its rows."""
@@ -350,7 +380,7 @@ def conv_windows(m, x, y, x0, out_hw):
         o0 = -((span - p[a] - start) // s[a])  # the first output reached (ceil division)
         o1 = (start + size - 1 + p[a]) // s[a]  # the last
         ahead = start - (o0 * s[a] - p[a])  # input entries before the window, ≥ 0
-        n = int((o1 - o0).max()) + 1
+        n = max(1, int((o1 - o0).max()) + 1)  # 0 where no window reaches an output
         first.append(o0)
         lead.append(ahead)
         length.append(max((n - 1) * s[a] + span + 1, int((ahead + size).max())))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -225,9 +227,7 @@ def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
         q, out = region.mid.shape[1], []
         for budget in (0, 5, None):
             stacks, _ = B.propagate(graph, region, zonotope=True, max_generators=budget)
-            assert stacks.mid.shape[1] - q <= (
-                B.symbol_budget(graph, q) if budget is None else budget
-            )
+            assert budget is None or stacks.mid.shape[1] - q <= budget
             lo, hi = stacks.bounds()
             slack = 1e-5 * (1 + y.abs().max())
             assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all(), budget
@@ -243,6 +243,64 @@ def test_zonotope_past_its_symbol_budget_stays_sound_and_loosens():
     # Symbols a relaxation error cannot share are boxed: every budget is sound, fewer
     # symbols are looser (on a ReLU network; max pooling concretises either way).
     assert none >= few >= full and none > 1.5 * full
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_a_symbols_footprint_bounds_its_windows_and_the_budget_counts_it(seed, monkeypatch):
+    """Every window a symbol holds in any value (as the pass maps it through strided
+    convolutions, a residual add and a transposed-convolution decoder) is within its
+    maker's footprint, and a smaller element budget makes fewer symbols, within it, and
+    looser bounds that still contain the samples."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify import operators, symbols
+    from kpstudy.verify.graph import trace
+
+    net = TinyResNet(seed)
+    hull = ConvexHull(block_hull_vertices(seed))
+    graph = trace(net, hull.vertices[:1])
+    region = hull.region(hull.root(), graph.dtype)
+    footprints = B.symbol_footprints(graph)
+    assert footprints and all(0 < f <= 32 * 16 * 16 for f in footprints.values())
+    makers, held = {}, []  # first symbol → its node; every block any operator returns
+    make = operators.ReLURules._blocks
+
+    def record_maker(self, p, i, x):
+        makers[p.made] = i
+        return make(self, p, i, x)
+
+    for name in ("apply", "combine"):
+        real = getattr(symbols, name)
+
+        def record(*args, real=real):
+            out = real(*args)
+            held.extend(out)
+            return out
+
+        monkeypatch.setattr(symbols, name, record)
+    monkeypatch.setattr(operators.ReLURules, "_blocks", record_maker)
+    y = net(_sample_images(hull, seed=seed)).detach()
+    widths, made = [], []
+    affine = region.mid.shape[1] * max(math.prod(n.shape) for n in graph.nodes)
+    with torch.no_grad():
+        for elements in (None, affine + 3000):
+            if elements is not None:
+                monkeypatch.setattr(B, "ZONOTOPE_ELEMENTS", elements)
+            makers.clear()
+            held.clear()
+            out, _ = B.propagate(graph, region, zonotope=True)
+            starts = sorted(makers)
+            for b in held:
+                maker = makers[max(s for s in starts if s <= b.start)]
+                assert b.coeff[0, 0].numel() <= footprints[maker]
+            ends = [*starts[1:], out.mid.shape[1]]
+            cost = sum((e - s) * footprints[makers[s]] for s, e in zip(starts, ends))
+            assert elements is None or 0 < cost <= elements - affine
+            lo, hi = out.bounds()
+            slack = 1e-5 * (1 + y.abs().max())
+            assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all()
+            widths.append((hi - lo).mean().item())
+            made.append(out.mid.shape[1] - region.mid.shape[1])
+    assert made[1] < made[0] and widths[1] > widths[0]
 
 
 class _TwoReluBranches(nn.Module):

@@ -93,6 +93,25 @@ def test_an_operator_maps_each_window_as_it_maps_the_dense_stack(layer):
     torch.testing.assert_close(got, after.view(B, rows, *out_shape), rtol=1e-12, atol=1e-12)
 
 
+def test_windows_that_a_strided_convolution_skips_map_to_zero():
+    """A 1×1 window on an odd row and column reaches no output of a 1×1 convolution of
+    stride 2 (a residual block's shortcut): alone in its block or beside a window that
+    does reach one."""
+    layer = nn.Conv2d(C, 3, 1, stride=2).double()
+    op = ops.Conv(layer)
+    for entries in ([(3, 5)], [(3, 5), (2, 4)]):
+        mu = torch.zeros(1, C, H, W, dtype=torch.float64)
+        for y, x in entries:
+            mu[0, :, y, x] = 1.0
+        blocks = symbols.make(mu, Q)
+        rows = rows_of(blocks)
+        before = dense_symbols(blocks, rows, (1, C, H, W))
+        after = op.linear(before.flatten(0, 1))
+        mapped = symbols.apply(op, blocks, tuple(after.shape[1:]))
+        got = dense_symbols(mapped, rows, (1, *after.shape[1:]))
+        torch.testing.assert_close(got, after.view(1, rows, *after.shape[1:]), rtol=0, atol=0)
+
+
 def test_a_sum_and_a_channel_concatenation_merge_the_blocks_of_their_inputs():
     mu = positive_entries(2)
     first = symbols.make(mu, Q)
@@ -140,6 +159,27 @@ def test_gather_reads_the_dense_rows_at_chosen_entries():
     like = torch.zeros(B, Q, C, H, W, dtype=torch.float64)
     got = symbols.gather(blocks, rows, Q, like, index)
     torch.testing.assert_close(got, dense[..., index], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_margins_symbol_share_is_reach_plus_reach_less_the_overlap(seed):
+    """``Σ_e |s_e(i) − s_e(c)| = ρ(i) + ρ(c) − overlap(i)`` on every entry ``i`` of a
+    channel, for a candidate ``c`` inside some windows, on a border, or reached by none."""
+    blocks, rows = conv_blocks(seed)
+    D = dense_symbols(blocks, rows, (B, C, H, W))  # (B, E, C, H, W)
+    rho = symbols.reach(blocks, torch.zeros(B, C, H, W, dtype=torch.float64)).flatten(2)
+    g = torch.Generator().manual_seed(seed)
+    for channel in range(C):
+        s = D[:, :, channel].flatten(2)  # (B, E, H·W)
+        for _ in range(4):
+            y = torch.randint(0, H, (B,), generator=g)
+            x = torch.randint(0, W, (B,), generator=g)
+            c = y * W + x
+            at_c = s.gather(2, c.view(B, 1, 1).expand(-1, s.shape[1], 1))
+            expected = (s - at_c).abs().sum(1)  # (B, H·W)
+            shared = symbols.overlap(blocks, channel, y, x, (H, W))
+            got = rho[:, channel] + rho[:, channel].gather(1, c[:, None]) - shared
+            torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
 
 
 def test_the_cell_pool_reads_blocks_as_it_pools_the_dense_stack():
