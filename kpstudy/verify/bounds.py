@@ -158,7 +158,7 @@ def symbol_footprints(graph: Graph) -> dict[int, int]:
     holds in any later value, per region (the zonotope's memory budget counts symbols at
     this).
 
-    While a value's symbols travel in blocks (:mod:`kpstudy.verify.symbols`), a symbol
+    While a value's symbols travel in blocks (``kpstudy.verify.symbols``), a symbol
     holds its window: a ``1 × 1`` window at the middle of node ``i`` is mapped through the
     later local operators as the pass maps it (the windows' extents, not their values);
     from the first operator that reads the dense stack on, it holds whole values. A

@@ -524,8 +524,8 @@ class _Reach:
                 out.domain,
             )
             shared = symbols.overlap(out.blocks, g, at // W, at % W, out.mid.shape[-2:])
-            share = spread[:, g, left] + spread[:, g].gather(1, at[:, None]) - shared[:, left]
-            beaten[:, g, left] |= margin - share > self.tol_abs
+            reach = spread[:, g, left].double() + spread[:, g].gather(1, at[:, None]).double()
+            beaten[:, g, left] |= margin - (reach - shared[:, left]) > self.tol_abs
 
     def _padded(self, y: torch.Tensor, fill: float) -> torch.Tensor:
         """``y (..., N)`` flat outputs → ``(..., G, S)``, ``fill`` where a group is short."""

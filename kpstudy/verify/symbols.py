@@ -196,17 +196,18 @@ def overlap(blocks: list[Block], channel: int, y: torch.Tensor, x: torch.Tensor,
     With the reach ``ρ`` (:func:`reach`), ``Σ_e |s_e(i) − s_e(c)| = ρ(i) + ρ(c) −
     overlap(i)`` exactly (a symbol whose window misses ``c`` adds ``|s_e(i)|``), so a
     margin's share of the symbols costs the few symbols that reach ``c`` rather than a
-    read of every symbol on every entry. ``blocks`` must not be empty."""
+    read of every symbol on every entry. ``blocks`` must not be empty. Computed and
+    returned in float64: the difference cancels, so its error stays that of the reach."""
     H, W = size
     B = y.shape[0]
-    out = blocks[0].coeff.new_zeros(B * H * W)
+    out = torch.zeros(B * H * W, dtype=torch.float64)
     for b in blocks:
         h, w = b.coeff.shape[-2:]
         dy, dx = y[:, None] - b.y, x[:, None] - b.x  # (B, r): c within each window
         region, row = ((dy >= 0) & (dy < h) & (dx >= 0) & (dx < w)).nonzero(as_tuple=True)
         if len(region) == 0:
             continue
-        window = b.coeff[region, row, channel]  # (n, h, w)
+        window = b.coeff[region, row, channel].double()  # (n, h, w)
         at_c = window[torch.arange(len(region)), dy[region, row], dx[region, row]]
         at_c = at_c[:, None, None]
         term = window.abs() + at_c.abs() - (window - at_c).abs()
