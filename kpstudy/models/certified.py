@@ -18,13 +18,14 @@ is what the proxy's "the keypoint's cell wins" needs.
 from __future__ import annotations
 
 import contextlib
+import math
 
 import cv2
 import numpy as np
 import torch
 
 from kpstudy import _checks
-from kpstudy.verify.bounds import Region, propagate
+from kpstudy.verify.bounds import ZONOTOPE_ELEMENTS, Region, propagate
 from kpstudy.verify.graph import Graph, trace
 
 #: Bound methods of the term (:func:`hull_bounds`).
@@ -242,7 +243,16 @@ def hull_bounds(graph: Graph, vertices: torch.Tensor, scale: float = 1.0, method
     _checks.choice(method, "method", BOUND_METHODS)
     origin = vertices[:, :1]
     coeff = torch.cat([origin, (vertices[:, 1:] - origin) * scale], 1)
-    out, _ = propagate(graph, Region.affine(coeff, "simplex"), zonotope=method == "zonotope")
+    # Autograd keeps every symbol's windows for the backward pass: as many symbols as a
+    # dense stack of ZONOTOPE_ELEMENTS holds (without the cap the footprint budget admits
+    # far more, and training ran out of memory).
+    biggest = max(math.prod(n.shape) for n in graph.nodes)
+    out, _ = propagate(
+        graph,
+        Region.affine(coeff, "simplex"),
+        zonotope=method == "zonotope",
+        max_generators=max(0, ZONOTOPE_ELEMENTS // biggest - coeff.shape[1]),
+    )
     return out.bounds()
 
 

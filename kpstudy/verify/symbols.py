@@ -187,6 +187,10 @@ def gather(blocks: list[Block], rows: int, start: int, like: torch.Tensor, index
     return out[..., back]
 
 
+#: Window entries :func:`overlap` reads at a time (its float64 temporaries stay ~100 MB).
+OVERLAP_ELEMENTS = 2**22
+
+
 def overlap(blocks: list[Block], channel: int, y: torch.Tensor, x: torch.Tensor, size):
     """``Σ_e |s_e(i)| + |s_e(c)| − |s_e(i) − s_e(c)|`` over the symbols ``e`` of region
     ``b`` whose window covers the entry ``c = (channel, y[b], x[b])``, for every entry
@@ -205,16 +209,16 @@ def overlap(blocks: list[Block], channel: int, y: torch.Tensor, x: torch.Tensor,
         h, w = b.coeff.shape[-2:]
         dy, dx = y[:, None] - b.y, x[:, None] - b.x  # (B, r): c within each window
         region, row = ((dy >= 0) & (dy < h) & (dx >= 0) & (dx < w)).nonzero(as_tuple=True)
-        if len(region) == 0:
-            continue
-        window = b.coeff[region, row, channel].double()  # (n, h, w)
-        at_c = window[torch.arange(len(region)), dy[region, row], dx[region, row]]
-        at_c = at_c[:, None, None]
-        term = window.abs() + at_c.abs() - (window - at_c).abs()
-        iy = b.y[region, row][:, None, None] + torch.arange(h)[:, None]  # (n, h, 1)
-        ix = b.x[region, row][:, None, None] + torch.arange(w)  # (n, 1, w)
-        index = region[:, None, None] * (H * W) + iy * W + ix
-        out.index_add_(0, index.reshape(-1), term.reshape(-1))
+        step = max(1, OVERLAP_ELEMENTS // (h * w))  # windows at a time: bounded memory
+        for first in range(0, len(region), step):
+            reg, e = region[first : first + step], row[first : first + step]
+            window = b.coeff[reg, e, channel].double()  # (n, h, w)
+            at_c = window[torch.arange(len(reg)), dy[reg, e], dx[reg, e]][:, None, None]
+            term = window.abs() + at_c.abs() - (window - at_c).abs()
+            iy = b.y[reg, e][:, None, None] + torch.arange(h)[:, None]  # (n, h, 1)
+            ix = b.x[reg, e][:, None, None] + torch.arange(w)  # (n, 1, w)
+            index = reg[:, None, None] * (H * W) + iy * W + ix
+            out.index_add_(0, index.reshape(-1), term.reshape(-1))
     return out.view(B, H * W)
 
 
