@@ -42,6 +42,7 @@ def main(argv=None):
     ap.add_argument("--method", default="zonotope", help="forward, zonotope or ibp")
     ap.add_argument("--nodes", type=int, default=4, help="node budget per hull")
     ap.add_argument("--start-depth", type=int, default=2)
+    ap.add_argument("--batch", type=int, help="nodes bounded together (default: the search's)")
     ap.add_argument("--timeout", type=float, default=600.0, help="a cap, seconds per hull")
     ap.add_argument("--baseline", action="store_true", help="rerun each search without tail_first")
     args = ap.parse_args(argv)
@@ -66,6 +67,7 @@ def main(argv=None):
                 timeout=args.timeout,
                 max_nodes=args.nodes,
                 start_depth=args.start_depth,
+                batch=args.batch,
             )
             start = time.perf_counter()
             regions, _ = search_regions(net, hull, centers, 1, search)

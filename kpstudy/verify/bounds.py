@@ -34,8 +34,8 @@ Methods
     cost is one pass of every layer per symbol (thousands of symbols on the CNN), on the
     window the symbol reaches: each symbol keeps its own window, the symbols of one ReLU
     in one block (``kpstudy.verify.symbols``), until an operator that mixes space (a
-    pool, a flatten, a linear layer) needs the dense stack; the proxy's cell pool reads
-    the blocks itself.
+    flatten, a linear layer) needs the dense stack; the proxy's cell pool reads the
+    blocks itself, and a max pooling copies each chosen input's symbols.
     Symbols are numbered across branches, so two ReLU branches never share one. Their
     memory is budgeted in elements (:data:`ZONOTOPE_ELEMENTS` per region): a symbol costs
     the most its coefficients ever hold (:func:`symbol_footprints`: its window's extent
@@ -174,7 +174,8 @@ def symbol_footprints(graph: Graph) -> dict[int, int]:
         ins = [nodes[k].shape for k in node.inputs]
         rule = operators.rules(node.op.kind)
         through = rule.makes_symbols or (
-            isinstance(rule, operators.AffineRules) and symbols.is_local(node.op, ins, node.shape)
+            (rule.keeps_blocks or isinstance(rule, operators.AffineRules))
+            and symbols.is_local(node.op, ins, node.shape)
         )
         blocked[j] = through and all(blocked[k] for k in node.inputs)
     out = {}

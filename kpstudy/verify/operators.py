@@ -156,6 +156,9 @@ class Rules(ABC):
 
     #: Whether the zonotope makes up to one error symbol per neuron of such a node.
     makes_symbols = False
+    #: Whether its ``zonotope`` rule keeps symbols in blocks (a non-affine operator's own
+    #: map of them; an affine one's where its operator is local).
+    keeps_blocks = False
 
     @abstractmethod
     def forward(self, p: Pass, i: int, ins: list[Region]) -> Region:
@@ -320,14 +323,25 @@ class MaxPoolRules(Rules):
     """Decided windows (largest lower bound ≥ every other upper bound) pass their
     largest-lower-bound input; undecided ones are bounded below by it and above by the
     window's largest upper bound (with error symbols, the interval between its concrete
-    lower bound and that)."""
+    lower bound and that). A zonotope's symbols in blocks stay in blocks: on a decided
+    window each symbol's coefficient is its coefficient at the chosen input
+    (``kpstudy.verify.symbols.pool_chosen()``), on an undecided one it goes into the
+    interval."""
+
+    keeps_blocks = True
 
     def forward(self, p, i, ins):
+        mid = ins[0].mid
+        l, u = ins[0].bounds()
+        return self._pool(p, i, mid, ins[0].rad, l, u, mid.shape[1] > p.q)
+
+    def _pool(self, p, i, mid, rad, l, u, carried: bool) -> Region:
+        """The pooled ``θ`` rows (and symbol rows, if ``mid`` holds them) of an input
+        ``mid, rad`` bounded by ``l, u`` (``(B, C, H, W)``, its symbols' reach included);
+        ``carried``: whether it has symbols (in ``mid`` or in blocks)."""
         op = p.graph.nodes[i].op
-        mid, rad = ins[0].mid, ins[0].rad
         q = p.q
         B, rows, C, H, W = mid.shape
-        l, u = ins[0].bounds()
         lw, uw = _windows(op, l, float("-inf")), _windows(op, u, float("-inf"))  # (B, C, k, L)
         best = lw.argmax(2, keepdim=True)
         l_best = lw.gather(2, best)
@@ -344,7 +358,7 @@ class MaxPoolRules(Rules):
 
         keep = decided[:, None]
         zero = torch.zeros((), dtype=mid.dtype)
-        if rows == q:  # no symbols: keep the chosen input's lower bound linear in θ
+        if not carried:  # no symbols: keep the chosen input's lower bound linear in θ
             low, up = pick(mid - rad), torch.where(keep, pick(mid + rad), zero)
             up[:, 0] += torch.where(decided, zero, u_max)
             new_mid, new_rad = (up + low) / 2, (up - low) / 2
@@ -358,7 +372,20 @@ class MaxPoolRules(Rules):
         return Region(out_mid, out_rad, p.domain)
 
     def zonotope(self, p, i, ins):
-        return self.forward(p, i, [Region(p.dense(ins[0]), ins[0].rad, p.domain)])
+        x = ins[0]
+        if x.blocks is None:
+            return self.forward(p, i, [Region(p.dense(x), x.rad, p.domain)])
+        l, u = x.bounds()
+        value = self._pool(p, i, x.mid, x.rad, l, u, bool(x.blocks))
+        op, shape = p.graph.nodes[i].op, p.graph.nodes[i].shape
+        best, decided = p.saved[i][:2]  # (B, C, L)
+        B, C, (Ho, Wo) = best.shape[0], best.shape[1], shape[1:]
+        kw, (sh, sw), (ph, pw) = op.kernel[1], op.stride, op.padding
+        row = (torch.arange(Ho) * sh - ph)[:, None] + best.view(B, C, Ho, Wo) // kw
+        col = (torch.arange(Wo) * sw - pw) + best.view(B, C, Ho, Wo) % kw
+        row = torch.where(decided.view(B, C, Ho, Wo), row, -1)
+        blocks = symbols.pool_chosen(op, x.blocks, row, col, shape)
+        return Region(value.mid, value.rad, p.domain, blocks)
 
     def backward(self, graph, i, a, saved):
         """Lower ``y ≥ x[best]``; upper ``y ≤ x[best]`` where decided, else ``y ≤ max u``."""

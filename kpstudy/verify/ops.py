@@ -366,6 +366,7 @@ class MaxPool(Op):
     as ``(h, w)`` pairs."""
 
     kind = "maxpool"
+    local = True  # its rule maps symbol blocks itself (kpstudy.verify.operators)
 
     def __init__(self, m: nn.MaxPool2d):
         pair = lambda v: (v, v) if isinstance(v, int) else tuple(v)  # noqa: E731
@@ -380,3 +381,9 @@ class MaxPool(Op):
 
     def forward(self, x):
         return self.m(x)
+
+    def map_window(self, x, y, x0, out_hw):
+        """Max pooling of windows (``kpstudy.verify.symbols.pool_windows()``): what a
+        symbol's window reaches through the pooling, for its footprint; the zonotope's
+        rule maps the coefficients itself (``kpstudy.verify.operators``)."""
+        return symbols.pool_windows(self, x, y, x0, out_hw)

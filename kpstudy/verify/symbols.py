@@ -375,26 +375,74 @@ def _pair(v):
     return (v, v) if isinstance(v, int) else tuple(v)
 
 
+def reached_outputs(k, s, p, d, size, y, x0):
+    """The outputs a sliding window (kernel ``k``, stride ``s``, padding ``p``, dilation
+    ``d``, ``(h, w)`` pairs) reaches from windows of ``size (h, w)`` at corners ``y, x0
+    (N,)``: per axis the first output reached ``(N,)``, the input entries between its
+    input window's start and the window's ``(N,)`` (≥ 0), the outputs to compute (the
+    most any window reaches, at least 1) and the input length they read."""
+    first, lead, count, length = [], [], [], []
+    for a, start in enumerate((y, x0)):
+        span = d[a] * (k[a] - 1)
+        o0 = -((span - p[a] - start) // s[a])  # the first output reached (ceil division)
+        o1 = (start + size[a] - 1 + p[a]) // s[a]  # the last
+        ahead = start - (o0 * s[a] - p[a])
+        n = max(1, int((o1 - o0).max()) + 1)  # 0 where no window reaches an output
+        first.append(o0)
+        lead.append(ahead)
+        count.append(n)
+        length.append(max((n - 1) * s[a] + span + 1, int((ahead + size[a]).max())))
+    return first, lead, count, length
+
+
 def conv_windows(m, x, y, x0, out_hw):
     """``conv2d`` (no bias) of windows ``x (N, C, h, w)`` at corners ``y, x0 (N,)``: each
     window's outputs (those it reaches, placed inside ``out_hw``) and their corners."""
     k, s, p, d = (_pair(v) for v in (m.kernel_size, m.stride, m.padding, m.dilation))
-    first, lead, length = [], [], []
-    for a, start in enumerate((y, x0)):
-        size, span = x.shape[2 + a], d[a] * (k[a] - 1)
-        o0 = -((span - p[a] - start) // s[a])  # the first output reached (ceil division)
-        o1 = (start + size - 1 + p[a]) // s[a]  # the last
-        ahead = start - (o0 * s[a] - p[a])  # input entries before the window, ≥ 0
-        n = max(1, int((o1 - o0).max()) + 1)  # 0 where no window reaches an output
-        first.append(o0)
-        lead.append(ahead)
-        length.append(max((n - 1) * s[a] + span + 1, int((ahead + size).max())))
+    first, lead, _, length = reached_outputs(k, s, p, d, x.shape[2:], y, x0)
     if s == (1, 1):  # every window needs its kernel's span on each side
         out = F.conv2d(x, m.weight, None, s, (d[0] * (k[0] - 1), d[1] * (k[1] - 1)), d, m.groups)
     else:
         x = _shift(x, -lead[0], -lead[1], length)
         out = F.conv2d(x, m.weight, None, s, 0, d, m.groups)
     return _inside(out, first[0], first[1], out_hw)
+
+
+def pool_windows(op: ops.MaxPool, x, y, x0, out_hw):
+    """Max pooling (``op``'s kernel, stride and padding) of windows ``x (N, C, h, w)`` at
+    corners ``y, x0 (N,)``, zero outside them: each window's outputs (those it reaches,
+    placed inside ``out_hw``) and their corners. On non-negative windows, the extent of
+    the outputs a window's entries can be chosen by."""
+    first, lead, _, length = reached_outputs(
+        op.kernel, op.stride, op.padding, (1, 1), x.shape[2:], y, x0
+    )
+    out = F.max_pool2d(_shift(x, -lead[0], -lead[1], length), op.kernel, op.stride)
+    return _inside(out, first[0], first[1], out_hw)
+
+
+def pool_chosen(op: ops.MaxPool, blocks: list[Block], row, col, out_shape) -> list[Block]:
+    """The blocks of a max pooling's output where each output entry equals one input
+    entry, ``row, col (B, C, H_out, W_out)`` (int64; row −1 for an entry that copies
+    none, whose symbols' coefficients are then 0): a symbol's coefficient at an
+    output is its coefficient at the chosen input, zero where that lies outside its
+    window."""
+    out = []
+    Ho, Wo = out_shape[1:]
+    for b in blocks:
+        B, r, C, h, w = b.coeff.shape
+        first, _, (nh, nw), _ = reached_outputs(
+            op.kernel, op.stride, op.padding, (1, 1), (h, w), b.y.reshape(-1), b.x.reshape(-1)
+        )
+        nh, nw = min(nh, Ho), min(nw, Wo)
+        oy = first[0].view(B, r).clamp(0, Ho - nh)
+        ox = first[1].view(B, r).clamp(0, Wo - nw)
+        ly = _windows(row, oy, ox, nh, nw) - b.y[..., None, None, None]  # (B, r, C, nh, nw)
+        lx = _windows(col, oy, ox, nh, nw) - b.x[..., None, None, None]
+        inside = (ly >= 0) & (ly < h) & (lx >= 0) & (lx < w)
+        at = torch.where(inside, ly * w + lx, 0).flatten(-2)
+        coeff = b.coeff.flatten(-2).gather(-1, at).view(B, r, C, nh, nw)
+        out.append(Block(coeff * inside, b.start, oy, ox))
+    return out
 
 
 def conv_transpose_windows(m, x, y, x0, out_hw):

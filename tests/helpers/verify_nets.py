@@ -131,7 +131,8 @@ class PatchNet(nn.Module):
 
 
 class TinyResNet(nn.Module):
-    """ResNet-18's shape in miniature: a strided stem, kpstudy's own ``BasicBlock`` with a
+    """ResNet-18's shape in miniature: a stem with a strided max pooling, kpstudy's own
+    ``BasicBlock`` with a
     strided 1×1 shortcut and one with the identity, then a decoder of 4×4 transposed
     convolutions of stride 2 with batch norms and ReLUs and a 1×1 convolution to the
     heatmaps. Input ``(B, 3, 16, 16)`` → heatmaps ``(B, 3, 16, 16)``."""
@@ -142,8 +143,8 @@ class TinyResNet(nn.Module):
         super().__init__()
         torch.manual_seed(seed)
         self.net = nn.Sequential(
-            nn.Conv2d(3, 8, 3, 2, 1, bias=False), nn.BatchNorm2d(8), nn.ReLU(),
-            BasicBlock(8, 12, 2), BasicBlock(12, 12, 1),
+            nn.Conv2d(3, 8, 3, 1, 1, bias=False), nn.BatchNorm2d(8), nn.ReLU(),
+            nn.MaxPool2d(3, 2, 1), BasicBlock(8, 12, 2), BasicBlock(12, 12, 1),
             nn.ConvTranspose2d(12, 8, 4, 2, 1, bias=False), nn.BatchNorm2d(8), nn.ReLU(),
             nn.ConvTranspose2d(8, 6, 4, 2, 1, bias=False), nn.BatchNorm2d(6), nn.ReLU(),
             nn.Conv2d(6, 3, 1),

@@ -347,19 +347,21 @@ def test_symbols_of_parallel_branches_stay_distinct():
 
 
 @pytest.mark.parametrize("seed", range(5))
-@pytest.mark.parametrize("net_name", ["local", "pool"])
+@pytest.mark.parametrize("net_name", ["local", "pool", "resnet"])
 def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
     """Error symbols kept in spatial blocks (kpstudy.verify.symbols) give the bounds of
     the dense stacks, for a batch of regions, through every block operator in awkward
-    geometry (LocalNet) and through the proxy's cell pools read block by block
-    (PoolProxy; the last case has one-pixel cells, which pass unpooled); and they contain
-    2000 sampled images."""
+    geometry (LocalNet), through the proxy's cell pools read block by block (PoolProxy;
+    the last case has one-pixel cells, which pass unpooled) and through a strided max
+    pooling before residual blocks (TinyResNet); and they contain 2000 sampled images."""
     from kpstudy.verify import bounds as B
     from kpstudy.verify import symbols
     from kpstudy.verify.graph import trace
 
     if net_name == "local":
         net, shape = LocalNet(seed).double(), (2, 11, 9)
+    elif net_name == "resnet":
+        net, shape = TinyResNet(seed).double(), (3, 16, 16)
     else:
         dvs = [((1, 1), (1, 2)), ((2, 0), (0, 1)), ((1, 2), (2, 2)), ((0, 1), (3, 1))]
         dvs = (dvs + [((0, 0), (0, 0))])[seed]
@@ -375,14 +377,14 @@ def test_zonotope_symbol_blocks_equal_dense_stacks(net_name, seed, monkeypatch):
         dense, _ = B.propagate(graph, region, zonotope=True)
     # The same symbols (blocks number them per ReLU, padded to the batch): every linear
     # function of the output has the same bounds, margins included.
-    q, outputs = region.mid.shape[1], y.shape[1]
+    q, outputs = region.mid.shape[1], y[0].numel()
     g = torch.Generator().manual_seed(seed)
     eye = torch.eye(outputs, dtype=torch.float64)
     A = torch.cat([torch.randn(8, outputs, dtype=torch.float64, generator=g), eye, -eye])
     lows = []
     for out in (blocks, dense):
-        coeff = out.mid @ A.T
-        coeff[:, :q] -= out.rad @ A.abs().T
+        coeff = out.mid.flatten(2) @ A.T
+        coeff[:, :q] -= out.rad.flatten(2) @ A.abs().T
         lows.append(B.zonotope_min(coeff, q, "simplex"))
     torch.testing.assert_close(lows[0], lows[1])
     torch.testing.assert_close(blocks.rad, dense.rad)

@@ -112,6 +112,37 @@ def test_windows_that_a_strided_convolution_skips_map_to_zero():
         torch.testing.assert_close(got, after.view(1, rows, *after.shape[1:]), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_a_max_pooling_copies_each_chosen_inputs_symbols_and_drops_the_undecided(seed):
+    """Each output of a 3×3 stride-2 max pooling takes the symbols of the input it
+    chose (any entry of its window: ``pool_chosen``), none where no input was chosen (an
+    undecided window), on windows larger than one entry; and ``pool_windows`` reaches
+    every output a window's entry can be chosen by."""
+    pool = ops.MaxPool(nn.MaxPool2d(3, 2, 1))
+    blocks, rows = conv_blocks(seed)
+    Ho, Wo = (H + 1) // 2, (W + 1) // 2
+    g = torch.Generator().manual_seed(seed)
+    oy, ox = torch.arange(Ho)[:, None] * 2 - 1, torch.arange(Wo) * 2 - 1
+    row = (oy + torch.randint(0, 3, (B, C, Ho, Wo), generator=g)).clamp(0, H - 1)
+    col = (ox + torch.randint(0, 3, (B, C, Ho, Wo), generator=g)).clamp(0, W - 1)
+    row[torch.rand(B, C, Ho, Wo, generator=g) < 0.3] = -1  # undecided
+    before = dense_symbols(blocks, rows, (B, C, H, W)).flatten(3)  # (B, rows, C, H·W)
+    index = (row.clamp_min(0) * W + col).flatten(2)[:, None].expand(-1, rows, -1, -1)
+    want = (before.gather(3, index) * (row >= 0).flatten(2)[:, None]).view(B, rows, C, Ho, Wo)
+    got = dense_symbols(
+        symbols.pool_chosen(pool, blocks, row, col, (C, Ho, Wo)), rows, (B, C, Ho, Wo)
+    )
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+    reached = dense_symbols(
+        symbols.apply(
+            pool, [symbols.Block(b.coeff.abs() + 1, b.start, b.y, b.x) for b in blocks], (C, Ho, Wo)
+        ),
+        rows,
+        (B, C, Ho, Wo),
+    )
+    assert ((reached > 0) | (want == 0)).all()
+
+
 def test_a_sum_and_a_channel_concatenation_merge_the_blocks_of_their_inputs():
     mu = positive_entries(2)
     first = symbols.make(mu, Q)
