@@ -174,8 +174,7 @@ def symbol_footprints(graph: Graph) -> dict[int, int]:
         ins = [nodes[k].shape for k in node.inputs]
         rule = operators.rules(node.op.kind)
         through = rule.makes_symbols or (
-            (rule.keeps_blocks or isinstance(rule, operators.AffineRules))
-            and symbols.is_local(node.op, ins, node.shape)
+            rule.keeps_blocks and symbols.is_local(node.op, ins, node.shape)
         )
         blocked[j] = through and all(blocked[k] for k in node.inputs)
     out = {}

@@ -156,8 +156,8 @@ class Rules(ABC):
 
     #: Whether the zonotope makes up to one error symbol per neuron of such a node.
     makes_symbols = False
-    #: Whether its ``zonotope`` rule keeps symbols in blocks (a non-affine operator's own
-    #: map of them; an affine one's where its operator is local).
+    #: Whether its ``zonotope`` rule keeps a value's symbols in blocks where its operator
+    #: is local (``kpstudy.verify.ops.Op.local``).
     keeps_blocks = False
 
     @abstractmethod
@@ -185,6 +185,8 @@ class AffineRules(Rules):
     (:attr:`~kpstudy.verify.ops.Op.local`, :meth:`~kpstudy.verify.ops.Op.map_window`);
     one that reads them itself (:meth:`~kpstudy.verify.ops.Op.read_blocks`, the cell
     pool) gives the dense stack of its output; any other reads the dense stack."""
+
+    keeps_blocks = True
 
     def forward(self, p, i, ins):
         node = p.graph.nodes[i]
