@@ -132,10 +132,9 @@ class PatchNet(nn.Module):
 
 class TinyResNet(nn.Module):
     """ResNet-18's shape in miniature: a stem with a strided max pooling, kpstudy's own
-    ``BasicBlock`` with a
-    strided 1×1 shortcut and one with the identity, then a decoder of 4×4 transposed
-    convolutions of stride 2 with batch norms and ReLUs and a 1×1 convolution to the
-    heatmaps. Input ``(B, 3, 16, 16)`` → heatmaps ``(B, 3, 16, 16)``."""
+    ``BasicBlock`` with a strided 1×1 shortcut and one with the identity, then a decoder
+    of 4×4 transposed convolutions of stride 2 with batch norms and ReLUs and a 1×1
+    convolution to the heatmaps. Input ``(B, 3, 16, 16)`` → heatmaps ``(B, 3, 16, 16)``."""
 
     def __init__(self, seed: int):
         from kpstudy.models.resnet import BasicBlock
