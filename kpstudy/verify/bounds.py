@@ -35,12 +35,13 @@ Methods
     window the symbol reaches: each symbol keeps its own window, the symbols of one ReLU
     in one block (``kpstudy.verify.symbols``), until an operator that mixes space (a
     flatten, a linear layer) needs the dense stack; the proxy's cell pool reads the
-    blocks itself, and a max pooling copies each chosen input's symbols.
+    blocks itself, and a max pooling copies each window's chosen input's symbols (an
+    undecided window adds one symbol for its excess over that input).
     Symbols are numbered across branches, so two ReLU branches never share one. Their
     memory is budgeted in elements (:data:`ZONOTOPE_ELEMENTS` per region): a symbol costs
     the most its coefficients ever hold (:func:`symbol_footprints`: its window's extent
-    through the blocks, a whole value once it is dense), and past the budget a ReLU's
-    smallest further errors go into the radius instead (sound, looser).
+    through the blocks, a whole value once it is dense), and past the budget the smallest
+    further errors of a ReLU or a max pooling go into the radius instead (sound, looser).
 
 Floating point: bounds are computed in the graph's dtype; the verifier asks for a
 margin above a tolerance or recomputes a node in float64 before it says ``holds``.
@@ -154,9 +155,9 @@ _FOOTPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def symbol_footprints(graph: Graph) -> dict[int, int]:
-    """Per symbol-making node (a ReLU) ``i``: the most elements one error symbol made there
-    holds in any later value, per region (the zonotope's memory budget counts symbols at
-    this).
+    """Per symbol-making node (a ReLU, a max pooling) ``i``: the most elements one error
+    symbol made there holds in any later value, per region (the zonotope's memory budget
+    counts symbols at this).
 
     While a value's symbols travel in blocks (``kpstudy.verify.symbols``), a symbol
     holds its window: a ``1 × 1`` window at the middle of node ``i`` is mapped through the
@@ -198,7 +199,8 @@ def symbol_footprints(graph: Graph) -> dict[int, int]:
                 if not blocked[j]:
                     cost = max(cost, later[j])
                     break
-                if operators.rules(after.op.kind).makes_symbols:
+                rule = operators.rules(after.op.kind)
+                if rule.makes_symbols and not rule.keeps_blocks:  # element-wise: the same
                     reach[j] = held[0]
                 elif len(held) == 1:
                     reach[j] = symbols.apply(after.op, held[0], after.shape)

@@ -302,45 +302,40 @@ class ReLURules(Rules):
         mid, rad = x.mid, x.rad
         l, u = x.bounds()
         s, mu = self._deepz(p, i, l, u)
-        B = mid.shape[0]
-        flat_mu = mu.reshape(B, -1)
-        most = int((flat_mu > 0).sum(1).max())
-        k, kept = p.allow(i, most), flat_mu
-        if k < most:  # the k largest μ of each region
-            kept = torch.zeros_like(flat_mu)
-            if k > 0:
-                top = flat_mu.topk(k, 1)
-                kept = kept.scatter(1, top.indices, top.values)
-        new = symbols.make(kept.view_as(mu), p.made)
-        rows = sum(b.rows for b in new)
+        kept = _budgeted(p, i, mu)
+        new = symbols.make(kept, p.made)
         new_mid = mid * s[:, None]
         new_mid[:, 0] += mu
         new_rad = s[:, None] * rad
-        new_rad[:, 0] += (flat_mu - kept).view_as(mu)  # the rest: radius
-        p.made += rows
+        new_rad[:, 0] += mu - kept  # the rest: radius
+        p.made += sum(b.rows for b in new)
         return Region(new_mid, new_rad, p.domain, symbols.scale(x.blocks, s) + new)
 
 
 class MaxPoolRules(Rules):
     """Decided windows (largest lower bound ≥ every other upper bound) pass their
-    largest-lower-bound input; undecided ones are bounded below by it and above by the
-    window's largest upper bound (with error symbols, the interval between its concrete
-    lower bound and that). A zonotope's symbols in blocks stay in blocks: on a decided
-    window each symbol's coefficient is its coefficient at the chosen input
-    (``kpstudy.verify.symbols.pool_chosen()``), on an undecided one it goes into the
-    interval."""
+    largest-lower-bound input ``x_c``; undecided ones are bounded below by it and above by
+    the window's largest upper bound. ``zonotope``: every window passes ``x_c`` with its
+    error symbols, and an undecided one adds its excess ``max_j x_j − x_c ∈ [0, 2μ]``
+    (``2μ`` the largest other upper bound less ``x_c``'s lower bound) as ``μ + μ·ε``, one
+    new symbol per window (past the pass's budget, :meth:`Pass.allow`, the smallest go
+    to the radius). So an undecided window's interval never reaches the radius, which
+    every later layer would widen by ``|W|`` (on ResNet-18, ~10× a layer). Symbols in
+    blocks stay in blocks (``kpstudy.verify.symbols.pool_chosen()``)."""
 
+    makes_symbols = True
     keeps_blocks = True
 
     def forward(self, p, i, ins):
-        mid = ins[0].mid
         l, u = ins[0].bounds()
-        return self._pool(p, i, mid, ins[0].rad, l, u, mid.shape[1] > p.q)
+        return self._pool(p, i, ins[0].mid, ins[0].rad, l, u)[0]
 
-    def _pool(self, p, i, mid, rad, l, u, carried: bool) -> Region:
+    def _pool(self, p, i, mid, rad, l, u, carried: bool = False):
         """The pooled ``θ`` rows (and symbol rows, if ``mid`` holds them) of an input
-        ``mid, rad`` bounded by ``l, u`` (``(B, C, H, W)``, its symbols' reach included);
-        ``carried``: whether it has symbols (in ``mid`` or in blocks)."""
+        ``mid, rad`` bounded by ``l, u`` (``(B, C, H, W)``, its symbols' reach included),
+        and ``None``; ``carried`` (the zonotope): every window's chosen input, and the
+        undecided windows' excess ``μ (B, C, H_out, W_out)`` (0 where decided), already
+        added to the constant row."""
         op = p.graph.nodes[i].op
         q = p.q
         B, rows, C, H, W = mid.shape
@@ -358,36 +353,44 @@ class MaxPoolRules(Rules):
             win = _windows(op, x.reshape(B * r, C, H, W), 0.0).reshape(B, r, C, -1, Ho * Wo)
             return win.gather(3, best[:, None].expand(B, r, C, 1, Ho * Wo))[:, :, :, 0]
 
-        keep = decided[:, None]
         zero = torch.zeros((), dtype=mid.dtype)
+        excess = None
         if not carried:  # no symbols: keep the chosen input's lower bound linear in θ
-            low, up = pick(mid - rad), torch.where(keep, pick(mid + rad), zero)
+            low, up = pick(mid - rad), torch.where(decided[:, None], pick(mid + rad), zero)
             up[:, 0] += torch.where(decided, zero, u_max)
             new_mid, new_rad = (up + low) / 2, (up - low) / 2
         else:
-            new_mid = torch.where(keep, pick(mid), zero)
-            new_rad = torch.where(keep, pick(rad), zero)
-            new_mid[:, 0] += torch.where(decided, zero, (l_best + u_max) / 2)
-            new_rad[:, 0] += torch.where(decided, zero, (u_max - l_best) / 2)
+            new_mid, new_rad = pick(mid), pick(rad)
+            excess = torch.where(decided, zero, (others[:, :, 0] - l_best).clamp_min(0) / 2)
+            new_mid[:, 0] += excess
+            excess = excess.reshape(B, C, Ho, Wo)
         p.saved[i] = (best[:, :, 0], decided, torch.where(decided, zero, u_max), (H, W))
         out_mid, out_rad = new_mid.reshape(B, rows, C, Ho, Wo), new_rad.reshape(B, q, C, Ho, Wo)
-        return Region(out_mid, out_rad, p.domain)
+        return Region(out_mid, out_rad, p.domain), excess
 
     def zonotope(self, p, i, ins):
         x = ins[0]
-        if x.blocks is None:
-            return self.forward(p, i, [Region(p.dense(x), x.rad, p.domain)])
         l, u = x.bounds()
-        value = self._pool(p, i, x.mid, x.rad, l, u, bool(x.blocks))
-        op, shape = p.graph.nodes[i].op, p.graph.nodes[i].shape
-        best, decided = p.saved[i][:2]  # (B, C, L)
-        B, C, (Ho, Wo) = best.shape[0], best.shape[1], shape[1:]
-        kw, (sh, sw), (ph, pw) = op.kernel[1], op.stride, op.padding
-        row = (torch.arange(Ho) * sh - ph)[:, None] + best.view(B, C, Ho, Wo) // kw
-        col = (torch.arange(Wo) * sw - pw) + best.view(B, C, Ho, Wo) % kw
-        row = torch.where(decided.view(B, C, Ho, Wo), row, -1)
-        blocks = symbols.pool_chosen(op, x.blocks, row, col, shape)
-        return Region(value.mid, value.rad, p.domain, blocks)
+        dense = x.blocks is None
+        mid = _pad_rows(x.mid, p.made) if dense else x.mid  # new symbols come after all
+        value, excess = self._pool(p, i, mid, x.rad, l, u, carried=True)
+        kept = _budgeted(p, i, excess)
+        value.rad[:, 0] += excess - kept  # the rest: radius
+        new = symbols.make(kept, p.made)
+        made = p.made + sum(b.rows for b in new)
+        if dense:
+            value = Region(symbols.dense(value.mid, new, made), value.rad, p.domain)
+        else:
+            op, shape = p.graph.nodes[i].op, p.graph.nodes[i].shape
+            best = p.saved[i][0]  # (B, C, L)
+            B, C, (Ho, Wo) = best.shape[0], best.shape[1], shape[1:]
+            kw, (sh, sw), (ph, pw) = op.kernel[1], op.stride, op.padding
+            row = (torch.arange(Ho) * sh - ph)[:, None] + best.view(B, C, Ho, Wo) // kw
+            col = (torch.arange(Wo) * sw - pw) + best.view(B, C, Ho, Wo) % kw
+            blocks = symbols.pool_chosen(op, x.blocks, row, col, shape) + new
+            value = Region(value.mid, value.rad, p.domain, blocks)
+        p.made = made
+        return value
 
     def backward(self, graph, i, a, saved):
         """Lower ``y ≥ x[best]``; upper ``y ≤ x[best]`` where decided, else ``y ≤ max u``."""
@@ -420,6 +423,22 @@ def rules(kind: str) -> Rules:
         return RULES[kind]
     except KeyError:
         raise ValueError(f"operator kind {kind!r} has no bound rules (operators.RULES)") from None
+
+
+def _budgeted(p: Pass, i: int, mu: torch.Tensor) -> torch.Tensor:
+    """``mu (B, *S)`` (new symbols' coefficients, ≥ 0) with all but the ``k`` largest
+    entries of each region zeroed, ``k`` the symbols node ``i`` may make
+    (:meth:`Pass.allow`)."""
+    flat = mu.reshape(mu.shape[0], -1)
+    most = int((flat > 0).sum(1).max())
+    k = p.allow(i, most)
+    if k >= most:
+        return mu
+    kept = torch.zeros_like(flat)
+    if k > 0:
+        top = flat.topk(k, 1)
+        kept = kept.scatter(1, top.indices, top.values)
+    return kept.view_as(mu)
 
 
 def _windows(op: ops.MaxPool, x, fill: float):

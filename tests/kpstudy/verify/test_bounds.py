@@ -75,6 +75,30 @@ def test_bounds_contain_samples_of_block_hulls_on_a_residual_network(seed):
     assert (hi - lo).max() > 0  # the blocks do reach the heatmaps
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_undecided_max_pooling_windows_stay_out_of_the_radius(seed):
+    """The zonotope passes an undecided max-pooling window as its chosen input plus one
+    error symbol for the excess: where the stem's pooling of a block hull leaves windows
+    undecided, no interval enters the radius (which the later layers' |W| would widen),
+    and the bounds still contain the samples."""
+    from kpstudy.verify import bounds as B
+    from kpstudy.verify.graph import trace
+
+    net = TinyResNet(seed)
+    hull = ConvexHull(block_hull_vertices(seed))
+    graph = trace(net, hull.vertices[:1])
+    region = hull.region(hull.root(), graph.dtype)
+    pool = next(i for i, n in enumerate(graph.nodes) if i and n.op.kind == "maxpool")
+    with torch.no_grad():
+        out, saved = B.propagate(graph, region, zonotope=True)
+        y = net(_sample_images(hull, seed=seed))
+    assert not saved[pool][1].all()  # some window is undecided
+    assert (out.rad == 0).all()
+    lo, hi = out.bounds()
+    slack = 1e-5 * (1 + y.abs().max())
+    assert (y >= lo[0] - slack).all() and (y <= hi[0] + slack).all()
+
+
 def _interval(net, lo, hi):
     """Plain numpy interval arithmetic: pre-activation bounds for the MILP's big-M."""
     out = []
