@@ -265,8 +265,8 @@ GLOBAL_POSE_BOUND = {
 #: at the seed, the hull's corners and random and targeted images (a pose outside Ξ is a
 #: counterexample) and no bounds. At 256 × 256 a zonotope node of ResNet-18 takes 7–100 s
 #: on one core, and on a block hull of two images it decides nodes only from about 14
-#: splits down (every pixel stays possible at 10): a search would need ~10⁴ nodes a hull,
-#: and the study's hulls have four images. No node budget within reach decides one.
+#: splits down (every pixel stays possible at 10), ~10⁴ nodes a hull; on the study's
+#: hulls of four images from about 28, ~10⁸. No node budget within reach decides one.
 RESNET_POSE_BOUND = {
     "resnet18": dict(pose_bound_method="zonotope", pose_bound_timeout=600.0, pose_bound_nodes=0)
 }
