@@ -49,6 +49,7 @@ from kpstudy.models.preprocess import to_model_input
 from kpstudy.models.training import load_checkpoint
 from kpstudy.verify import ConvexHull, bounds, operators, reachable_argmax
 from kpstudy.verify.graph import trace
+from kpstudy.verify.profile import sampled_ranges
 
 LEVERS = ("zonotope", "split", "slopes", "crown", "oracle")
 #: Deepest level whose nodes ``--node -1`` bounds all, to find the loosest.
@@ -73,14 +74,15 @@ def unstable(l, u) -> int:
 
 
 class Recorded(operators.ReLURules):
-    """DeepZ, keeping each ReLU's pre-activation bounds ``l, u``."""
+    """DeepZ, keeping each ReLU's slopes ``s`` (``seen[i]``)."""
 
     def __init__(self):
         self.seen = {}
 
     def _deepz(self, p, i, l, u):
-        self.seen[i] = (l.detach().clone(), u.detach().clone())
-        return operators.ReLURules._deepz(p, i, l, u)
+        s, mu = operators.ReLURules._deepz(p, i, l, u)
+        self.seen[i] = s.detach().clone()
+        return s, mu
 
 
 class Slopes(operators.ReLURules):
@@ -135,35 +137,12 @@ class Oracle(operators.ReLURules):
         return operators.ReLURules._deepz(p, i, l, u)
 
 
-def sampled_ranges(graph, images: torch.Tensor, chunk: int = 16):
-    """Per graph node, the element-wise min and max of its value over ``images``."""
-    low, high = {}, {}
-    with torch.no_grad():
-        for part in images.split(chunk):
-            values = {0: part}
-            left = [len(c) for c in graph.consumers]
-            for i, node in enumerate(graph.nodes):
-                if i:
-                    values[i] = node.op.forward(*(values[j] for j in node.inputs))
-                lo, hi = values[i].min(0).values, values[i].max(0).values
-                low[i] = lo if i not in low else torch.minimum(low[i], lo)
-                high[i] = hi if i not in high else torch.maximum(high[i], hi)
-                for j in node.inputs:
-                    left[j] -= 1
-                    if not left[j]:
-                        del values[j]
-    return low, high
-
-
 def optimise_slopes(graph, region, steps: int, lr: float) -> dict:
     """Adam on DeepZ's slopes (from DeepZ's own) for the summed gap between every pixel's
     upper bound and its keypoint's best lower bound; the slopes after ``steps``."""
     with relu_rules(Recorded()) as seen, torch.no_grad():
         bounds.propagate(graph, region, zonotope=True, dense=False)
-    slopes = {
-        i: (u / (u - l).clamp_min(1e-30)).clamp(0, 1).requires_grad_(True)
-        for i, (l, u) in seen.seen.items()
-    }
+    slopes = {i: s.requires_grad_(True) for i, s in seen.seen.items()}
     opt = torch.optim.Adam(list(slopes.values()), lr=lr)
     G = graph.nodes[-1].shape[0]
     with relu_rules(Slopes(slopes)), torch.enable_grad():
@@ -284,7 +263,7 @@ def levers(net, node: ConvexHull, args) -> dict:
         else:
             images = node.image(node.sample(args.samples, 0)).to(graph.dtype)
             corners = node.image(node.sample(max(1, args.samples // 4), 1, "vertices"))
-            low, high = sampled_ranges(graph, torch.cat([images, corners.to(graph.dtype)]))
+            low, high = sampled_ranges(graph, torch.cat([images, corners.to(graph.dtype)]), 16)
             with relu_rules(Oracle(low, high)) as rules:
                 result[lever] = possible_pixels(net, node)
             result[lever]["unstable"] = list(rules.counts.values())

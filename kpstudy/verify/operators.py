@@ -331,11 +331,11 @@ class MaxPoolRules(Rules):
         return self._pool(p, i, ins[0].mid, ins[0].rad, l, u)[0]
 
     def _pool(self, p, i, mid, rad, l, u, carried: bool = False):
-        """The pooled ``θ`` rows (and symbol rows, if ``mid`` holds them) of an input
-        ``mid, rad`` bounded by ``l, u`` (``(B, C, H, W)``, its symbols' reach included),
-        and ``None``; ``carried`` (the zonotope): every window's chosen input, and the
+        """Pool an input ``mid, rad`` bounded by ``l, u`` (``(B, C, H, W)``, its symbols'
+        reach included). Returns the pooled value and, with ``carried`` (the zonotope:
+        every window passes its chosen input, symbol rows of ``mid`` included), the
         undecided windows' excess ``μ (B, C, H_out, W_out)`` (0 where decided), already
-        added to the constant row."""
+        added to the constant row; without it, ``None``."""
         op = p.graph.nodes[i].op
         q = p.q
         B, rows, C, H, W = mid.shape

@@ -102,7 +102,7 @@ def bound_profile(
         input_set.sample(extra, seed + k, kind) for k, kind in ((1, "vertices"), (2, "edges"))
     ]
     images = input_set.image(torch.cat(points)).to(graph.dtype)
-    low_s, high_s = _sampled_ranges(graph, images, chunk)
+    low_s, high_s = sampled_ranges(graph, images, chunk)
 
     nodes = input_set.root()
     for _ in range(depth):
@@ -170,8 +170,9 @@ def bound_profile(
     return rows
 
 
-def _sampled_ranges(graph: Graph, images: torch.Tensor, chunk: int):
-    """Element-wise min and max of every node's value over ``images``, chunk by chunk."""
+def sampled_ranges(graph: Graph, images: torch.Tensor, chunk: int = 100):
+    """Element-wise min and max of every node's value over ``images`` (lists indexed by
+    node), ``chunk`` images at a time."""
     low: list = [None] * len(graph.nodes)
     high: list = [None] * len(graph.nodes)
     with torch.no_grad():

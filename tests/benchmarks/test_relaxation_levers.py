@@ -12,10 +12,10 @@ from benchmarks.relaxation_levers import (
     Tightened,
     node_at,
     relu_rules,
-    sampled_ranges,
 )
 from kpstudy.verify import ConvexHull, bounds
 from kpstudy.verify.graph import trace
+from kpstudy.verify.profile import sampled_ranges
 from tests.helpers.verify_nets import LocalNet, hull_vertices, mlp
 
 
@@ -53,7 +53,7 @@ def test_deepz_at_any_slope_bounds_every_sampled_layer(kind, seed):
     _assert_contains_every_layer(net, hull, seen)
     assert seen.seen, "no ReLU was relaxed"
     g = torch.Generator().manual_seed(seed)
-    slopes = {i: torch.rand(l.shape, generator=g, dtype=l.dtype) for i, (l, _) in seen.seen.items()}
+    slopes = {i: torch.rand(s.shape, generator=g, dtype=s.dtype) for i, s in seen.seen.items()}
     slopes[min(slopes)].view(-1)[:3] = torch.tensor([0.0, 1.0, 0.5])  # the ends included
     _assert_contains_every_layer(net, hull, Slopes(slopes))
 
