@@ -93,6 +93,30 @@ def relu_instability(centre: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor
     return (depth / spread).mean()
 
 
+def block_image(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A copy of ``image (3, H, W)`` in [0, 1] with a :data:`BLOCK` × :data:`BLOCK` block of
+    uniform random values at a uniform random place (the study's block occlusion)."""
+    _, H, W = image.shape
+    y, x = rng.integers(0, H - BLOCK + 1), rng.integers(0, W - BLOCK + 1)
+    out = image.copy()
+    out[:, y : y + BLOCK, x : x + BLOCK] = rng.uniform(0, 1, (3, BLOCK, BLOCK))
+    return out
+
+
+def block_hull_points(images: torch.Tensor, rng: np.random.Generator, interior: int = 1):
+    """Points ``(B, 1 + MAX_COPIES + interior, 3, s, s)`` of a random block hull around each
+    image of ``images (B, 3, s, s)`` in [0, 1]: the image, :data:`MAX_COPIES` copies with a
+    block each (:func:`block_image`), then ``interior`` uniform random points of the hull."""
+    x = images.detach().float().cpu().numpy()
+    vertices = np.stack(
+        [np.stack([im] + [block_image(im, rng) for _ in range(MAX_COPIES)]) for im in x]
+    )
+    weights = rng.dirichlet(np.ones(1 + MAX_COPIES), (len(x), interior))
+    inner = np.einsum("bpk,bkchw->bpchw", weights, vertices)
+    points = np.concatenate([vertices, inner], 1).astype(np.float32)
+    return torch.from_numpy(points).to(images.device)
+
+
 class HullSampler:
     """Random convex hulls of the study's kinds around model-input images.
 
@@ -141,11 +165,7 @@ class HullSampler:
         return torch.from_numpy(out).to(images.device, images.dtype)
 
     def _block(self, image: np.ndarray) -> np.ndarray:
-        _, H, W = image.shape
-        y, x = self.rng.integers(0, H - BLOCK + 1), self.rng.integers(0, W - BLOCK + 1)
-        out = image.copy()
-        out[:, y : y + BLOCK, x : x + BLOCK] = self.rng.uniform(0, 1, (3, BLOCK, BLOCK))
-        return out
+        return block_image(image, self.rng)
 
     def _paste(self, image: np.ndarray) -> np.ndarray:
         """One patch, resized to a random size at the input's scale, alpha-composited at a

@@ -13,6 +13,7 @@ from kpstudy.models.certified import (
     MAX_COPIES,
     BatchStatistics,
     HullSampler,
+    block_hull_points,
     bound_graph,
     hull_bounds,
     occluder_patches,
@@ -319,6 +320,65 @@ def test_a_gradient_step_on_the_stability_term_lowers_it():
         _StabilityTerm(TrainConfig(stability_weight=1.0), nn.Sequential(nn.ReLU()))
     with pytest.raises(ValueError, match="stability_weight"):
         TrainConfig(stability_weight=-1.0)
+
+
+def test_block_hull_points_are_the_image_its_blocked_copies_and_an_interior_point():
+    images = torch.rand(2, 3, 8, 8)
+    points = block_hull_points(images, np.random.default_rng(0), interior=2)
+    assert points.shape == (2, 1 + MAX_COPIES + 2, 3, 8, 8)
+    torch.testing.assert_close(points[:, 0], images)
+    changed = (points[:, 1 : 1 + MAX_COPIES] != images[:, None]).any(2)  # (B, copies, 8, 8)
+    assert (changed.sum((-2, -1)) <= 9).all() and changed.any((-2, -1)).all()
+    rows, cols = changed.any(-1), changed.any(-2)  # each change is one 3×3 block
+    assert (rows.sum(-1) <= 3).all() and (cols.sum(-1) <= 3).all()
+    vertices, inner = points[:, : 1 + MAX_COPIES], points[:, 1 + MAX_COPIES :]
+    assert (inner >= vertices.amin(1, keepdim=True) - 1e-6).all()
+    assert (inner <= vertices.amax(1, keepdim=True) + 1e-6).all()
+    assert ((inner != images[:, None]).any(2) <= changed.any(1, keepdim=True)).all()
+
+
+def test_the_block_stability_term_reads_every_relu_and_a_step_lowers_it():
+    from kpstudy.models.training import _BlockStabilityTerm
+
+    net = SmallHeatmapNet().net.train()
+    term = _BlockStabilityTerm(TrainConfig(stability_weight=1.0, stability_hulls="blocks"), net)
+    torch.manual_seed(5)
+    x = torch.rand(8, 3, 8, 8)
+
+    def value():
+        term.reseed(0)
+        return term(x)
+
+    before = value()
+    assert before > 0
+    before.backward()
+    second = net[3].weight.grad  # after the first ReLU: the second ReLU's band is read too
+    assert second is not None and second.abs().sum() > 0
+    with torch.no_grad():
+        for p in net.parameters():
+            if p.grad is not None:
+                p -= 0.05 * p.grad
+    assert value() < before
+    stable = nn.Sequential(nn.Conv2d(3, 2, 3, 1, 1), nn.ReLU(), nn.Conv2d(2, 2, 1), nn.ReLU())
+    with torch.no_grad():
+        stable[0].bias.fill_(100.0)
+        stable[2].weight.abs_()
+        stable[2].bias.fill_(100.0)
+    term = _BlockStabilityTerm(TrainConfig(stability_weight=1.0, stability_hulls="blocks"), stable)
+    assert term(x) == 0  # no ReLU a block can flip
+    with pytest.raises(ValueError, match="stability_hulls: 'blocks' expected a backbone with"):
+        _BlockStabilityTerm(TrainConfig(stability_hulls="blocks"), nn.Conv2d(3, 2, 1))
+    with pytest.raises(ValueError, match="stability_hulls: expected one of"):
+        TrainConfig(stability_hulls="objects")
+
+
+def test_a_tiny_run_with_the_block_stability_term_records_it(tiny_dataset, tmp_path):
+    config = TrainConfig(
+        "cnn", epochs=1, batch_size=4, images=4, stability_weight=1.0, stability_hulls="blocks"
+    )
+    state = train(tiny_dataset, tmp_path / "cnn.pt", config, progress=False)
+    assert 0 < state["history"][0]["instability"] < np.inf
+    assert state["config"]["stability_hulls"] == "blocks"
 
 
 def test_the_shipped_checkpoint_is_the_recipes_and_matches_its_card():
