@@ -82,7 +82,7 @@ PRECISIONS = ("float32", "bfloat16")
 #: Hulls of the stability term (:class:`TrainConfig`'s ``stability_hulls``).
 STABILITY_HULLS = ("photometric", "blocks")
 #: Images of a batch that get a block hull in the ``'blocks'`` stability term (six points
-#: each through the backbone: on ResNet-18 a batch of 32 takes 2.4× as long).
+#: each through the backbone: a ResNet-18 epoch of batches of 32 takes about twice as long).
 BLOCK_STABILITY_HULLS = 4
 #: The bound term's weight of ``train --certified`` (the verification-friendly CNN's).
 CERTIFIED_WEIGHT = 2.0
