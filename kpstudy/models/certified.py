@@ -33,8 +33,10 @@ BOUND_METHODS = ("zonotope", "forward")
 #: Hull kinds drawn by :class:`HullSampler` and their probabilities.
 KINDS = {"objects": 0.5, "blocks": 0.2, "brightness": 0.15, "contrast": 0.15}
 PHOTOMETRIC = ("brightness", "contrast")  # the kinds that change every pixel a little
-MAX_COPIES = 4  # perturbed images of an object or block hull (the study's m ≤ 4)
-BLOCK = 3  # side of a pixel block, input pixels (data_gen.perturb.BLOCK)
+#: Perturbed images of an object or block hull (the study's m ≤ 4).
+MAX_COPIES = 4
+#: Side of a pixel block, input pixels (data_gen.perturb.BLOCK).
+BLOCK = 3
 BRIGHTNESS = 2.0 / 255  # the study's largest brightness change, in [0, 1] units
 CONTRAST = 1e-2  # the study's largest contrast change
 
