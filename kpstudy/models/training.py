@@ -40,8 +40,8 @@ block hulls instead (the image and four copies with a 3×3 block of random value
 is the range of its input over the hull's five vertices and a random interior point,
 passed through the backbone as one more batch. Past the first layer that band is sampled,
 a lower estimate of the one the verifier bounds; the term pushes the ReLUs that a block
-really flips out of their band (Xiao et al. 2019's ReLU stability, where a 3×3 block
-flips thousands of ReLUs a layer of ResNet-18).
+really flips out of their band (Xiao et al. 2019's ReLU stability). A 3×3 block flips
+thousands of ReLUs in every layer of ResNet-18.
 
 A checkpoint (``torch.save``, written atomically after every epoch) holds the
 configuration, the dataset's description, the model, optimiser and scheduler states and
@@ -150,7 +150,7 @@ class TrainConfig:
     )
     stability_weight: float = _option(
         0.0,
-        "share of a first-layer ReLU stability term over brightness and contrast hulls (0: none)",
+        "share of a ReLU stability term over the --stability-hulls (0: none)",
     )
     stability_hulls: str = _option(
         "photometric",
